@@ -1,0 +1,288 @@
+"""Input checking and the array conventions shared by every fusion function.
+
+Conventions
+-----------
+* A state vector is ``(n,)`` or filterpy's column ``(n, 1)``; answers come back in
+  the style of the first input.
+* Several estimates are either a sequence of N vectors (each with optional leading
+  batch axes) or one array ``(..., N, n)`` (or ``(..., N, n, 1)``); their
+  covariances a sequence of N matrices or one array ``(..., N, n, n)``.
+* Batch axes of the means and the covariances broadcast against each other.
+* Inputs are copied, never modified; covariances are symmetrised after the check.
+"""
+
+import numbers
+from typing import NamedTuple
+
+import numpy as np
+
+from ._linalg import cholesky, symmetrize
+
+# Relative tolerance for the symmetry check of a covariance: filterpy's Joseph-form
+# updates leave asymmetries of order 1e-16 relative, user typos are of order 1.
+SYMMETRY_RTOL = 1e-8
+
+
+class Estimates(NamedTuple):
+    """Validated estimates in the canonical row layout."""
+
+    x: np.ndarray  # (..., N, n)
+    P: np.ndarray  # (..., N, n, n), symmetric positive definite
+    L: np.ndarray  # (..., N, n, n), lower Cholesky factors of P
+    column: bool  # the first input was a filterpy column vector
+
+    @property
+    def count(self):
+        return self.x.shape[-2]
+
+    @property
+    def dim(self):
+        return self.x.shape[-1]
+
+    @property
+    def batch_shape(self):
+        return self.x.shape[:-2]
+
+
+def as_float_array(value, name):
+    """``np.asarray(value, float)`` with a ``TypeError`` naming ``name`` on failure."""
+    if isinstance(value, (str, bytes)) or value is None:
+        raise TypeError(f"{name} must be a numeric array, got {type(value).__name__}")
+    try:
+        array = np.array(value, dtype=float)  # a copy: inputs are never aliased
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be a numeric array ({exc})") from None
+    return array
+
+
+def check_finite(array, name):
+    """Raise ``ValueError`` if ``array`` has NaN or infinite entries."""
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} contains non-finite values (NaN or inf)")
+
+
+def _stack(items, axis, name):
+    arrays = [as_float_array(item, f"{name}[{i}]") for i, item in enumerate(items)]
+    for i, array in enumerate(arrays[1:], start=1):
+        if array.shape != arrays[0].shape:
+            raise ValueError(
+                f"{name}[{i}] has shape {array.shape}, but {name}[0] has shape {arrays[0].shape}"
+            )
+    return np.stack(arrays, axis=axis)
+
+
+def _is_sequence(value):
+    return isinstance(value, (list, tuple))
+
+
+def check_covariances(P, name="Ps", L=None):
+    """Check a stack of covariances: square, finite, symmetric, positive definite.
+
+    Returns the symmetrised copy and its Cholesky factors.
+    """
+    if P.ndim < 2 or P.shape[-1] != P.shape[-2]:
+        raise ValueError(f"{name} must hold square matrices (..., n, n), got shape {P.shape}")
+    if P.shape[-1] == 0:
+        raise ValueError(f"{name} must hold matrices of dimension n >= 1")
+    check_finite(P, name)
+    asymmetry = np.abs(P - np.swapaxes(P, -1, -2)).max(axis=(-2, -1))
+    scale = np.abs(P).max(axis=(-2, -1))
+    bad = asymmetry > SYMMETRY_RTOL * scale
+    if np.any(bad):
+        index = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
+        where = f"{name}[{', '.join(map(str, index))}]" if index else name
+        raise ValueError(
+            f"{where} is not symmetric (max |P - P^T| = {float(asymmetry[index]):.3g})"
+        )
+    P = symmetrize(P)
+    return P, (cholesky(P, name) if L is None else L)
+
+
+def as_covariance_stack(Ps, name="Ps"):
+    """Convert a sequence of N covariances or an array (..., N, n, n) to an array."""
+    if _is_sequence(Ps):
+        if len(Ps) == 0:
+            raise ValueError(f"{name} is empty")
+        return _stack(Ps, axis=-3, name=name)
+    P = as_float_array(Ps, name)
+    if P.ndim < 3:
+        raise ValueError(
+            f"{name} must be a sequence of covariance matrices or an array of shape "
+            f"(..., N, n, n), got shape {P.shape}"
+        )
+    return P
+
+
+def _vector_style(x, n):
+    """'column' if x ends in (n, 1), 'row' if it ends in (n,), else None."""
+    if x.ndim >= 2 and x.shape[-1] == 1 and x.shape[-2] == n:
+        return "column"
+    if x.ndim >= 1 and x.shape[-1] == n:
+        return "row"
+    return None
+
+
+def as_mean_stack(xs, n, count, name="xs"):
+    """Convert N means (sequence or array) to an array (..., N, n) and report their style."""
+    if _is_sequence(xs):
+        if len(xs) != count:
+            raise ValueError(f"{name} has {len(xs)} estimates but the covariances have {count}")
+        rows, column = [], None
+        for i, item in enumerate(xs):
+            x = as_float_array(item, f"{name}[{i}]")
+            style = _vector_style(x, n)
+            if style is None:
+                raise ValueError(
+                    f"{name}[{i}] must have shape (..., {n}) or (..., {n}, 1) to match its "
+                    f"{n}x{n} covariance, got shape {x.shape}"
+                )
+            rows.append(x[..., 0] if style == "column" else x)
+            column = (style == "column") if column is None else column
+        return _stack(rows, axis=-2, name=name), column
+    x = as_float_array(xs, name)
+    style = _vector_style(x, n)
+    if style == "column":
+        x = x[..., 0]
+    if style is None or x.ndim < 2 or x.shape[-2] != count:
+        raise ValueError(
+            f"{name} must be a sequence of {count} vectors or an array of shape "
+            f"(..., {count}, {n}) (or (..., {count}, {n}, 1)), got shape {np.shape(xs)}"
+        )
+    return x, style == "column"
+
+
+def as_estimates(xs, Ps, *, min_count=2, names=("xs", "Ps")):
+    """Validate N estimates and bring them to the canonical layout.
+
+    Parameters
+    ----------
+    xs : sequence of array_like or array_like
+        N means, each (..., n) or (..., n, 1); or one array (..., N, n) / (..., N, n, 1).
+    Ps : sequence of array_like or array_like
+        N covariances (..., n, n); or one array (..., N, n, n).
+    min_count : int
+        Smallest admissible N.
+    names : tuple of str
+        Argument names for the error messages.
+
+    Returns
+    -------
+    Estimates
+        ``x`` (..., N, n) and ``P`` (..., N, n, n) broadcast to a common batch shape,
+        Cholesky factors ``L`` and the vector style of the first input.
+    """
+    x_name, P_name = names
+    P = as_covariance_stack(Ps, P_name)
+    count, n = P.shape[-3], P.shape[-1]
+    if count < min_count:
+        raise ValueError(f"at least {min_count} estimates are needed, got {count}")
+    x, column = as_mean_stack(xs, n, count, x_name)
+    check_finite(x, x_name)
+    P, L = check_covariances(P, P_name)
+    try:
+        batch = np.broadcast_shapes(x.shape[:-2], P.shape[:-3])
+    except ValueError:
+        raise ValueError(
+            f"batch shapes of {x_name} {x.shape[:-2]} and {P_name} {P.shape[:-3]} "
+            "do not broadcast"
+        ) from None
+    x = np.array(np.broadcast_to(x, batch + x.shape[-2:]))
+    if P.shape[:-3] != batch:
+        P = np.array(np.broadcast_to(P, batch + P.shape[-3:]))
+        L = np.array(np.broadcast_to(L, batch + L.shape[-3:]))
+    return Estimates(x, P, L, bool(column))
+
+
+def as_covariances(Ps, *, min_count=2, name="Ps"):
+    """Validate N covariances alone; the returned Estimates have zero means."""
+    P = as_covariance_stack(Ps, name)
+    if P.shape[-3] < min_count:
+        raise ValueError(f"at least {min_count} estimates are needed, got {P.shape[-3]}")
+    P, L = check_covariances(P, name)
+    return Estimates(np.zeros(P.shape[:-1]), P, L, False)
+
+
+def restore_style(x, column):
+    """Give a fused mean (..., n) the caller's vector style."""
+    return x[..., None] if column else x
+
+
+def check_weights(omega, count, name="omega"):
+    """Check weights on the probability simplex; a float means (omega, 1 - omega).
+
+    Returns an array (..., N) that sums to one along the last axis.
+    """
+    if isinstance(omega, numbers.Real) and not isinstance(omega, bool):
+        if count != 2:
+            raise ValueError(
+                f"a scalar {name} is only defined for two estimates; "
+                f"give an array of {count} weights"
+            )
+        omega = [omega, 1.0 - float(omega)]
+    w = as_float_array(omega, name)
+    if w.ndim == 0 or w.shape[-1] != count:
+        raise ValueError(f"{name} must have shape (..., {count}), got shape {w.shape}")
+    check_finite(w, name)
+    tol = 1e-9
+    if np.any(w < -tol) or np.any(np.abs(w.sum(axis=-1) - 1.0) > tol):
+        raise ValueError(f"{name} must lie on the simplex (w_i >= 0, sum w_i = 1), got {w}")
+    w = np.clip(w, 0.0, None)
+    return w / w.sum(axis=-1, keepdims=True)
+
+
+def check_scalar(value, name, *, low=None, high=None, low_open=False, high_open=False):
+    """Check a real scalar against an interval and return it as float."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
+    value = float(value)
+    if not np.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    below = low is not None and (value <= low if low_open else value < low)
+    above = high is not None and (value >= high if high_open else value > high)
+    if below or above:
+        left = "(" if low_open else "["
+        right = ")" if high_open else "]"
+        lower = "-inf" if low is None else low
+        upper = "inf" if high is None else high
+        interval = f"{left}{lower}, {upper}{right}"
+        raise ValueError(f"{name} must lie in {interval}, got {value}")
+    return value
+
+
+def check_int(value, name, *, low=None):
+    """Check an integer (not bool) with an optional lower bound and return it."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be an integer, got {type(value).__name__}")
+    if low is not None and value < low:
+        raise ValueError(f"{name} must be >= {low}, got {value}")
+    return int(value)
+
+
+def as_rng(rng):
+    """A ``numpy.random.Generator`` from a Generator, a seed or None."""
+    if isinstance(rng, np.random.Generator):
+        return rng
+    if rng is None or isinstance(rng, (numbers.Integral, np.random.SeedSequence)):
+        return np.random.default_rng(rng)
+    raise TypeError(
+        f"rng must be a numpy.random.Generator, an integer seed or None, got {type(rng).__name__}"
+    )
+
+
+def check_psd_weight_matrix(W, n, name="criterion"):
+    """Check a symmetric positive semidefinite weight matrix (..., n, n)."""
+    W = as_float_array(W, name)
+    if W.ndim < 2 or W.shape[-2:] != (n, n):
+        raise ValueError(f"{name} must be an {n}x{n} weight matrix, got shape {W.shape}")
+    check_finite(W, name)
+    if np.any(np.abs(W - np.swapaxes(W, -1, -2)) > SYMMETRY_RTOL * max(np.abs(W).max(), 1e-300)):
+        raise ValueError(f"{name} must be symmetric")
+    W = symmetrize(W)
+    smallest = np.linalg.eigvalsh(W)[..., 0]
+    if np.any(smallest < -1e-10 * np.abs(W).max(axis=(-2, -1))):
+        raise ValueError(
+            f"{name} must be positive semidefinite (smallest eigenvalue {smallest.min():.3g})"
+        )
+    if np.any(np.abs(W).max(axis=(-2, -1)) == 0):
+        raise ValueError(f"{name} must not be the zero matrix")
+    return W

@@ -1,0 +1,215 @@
+"""filterpy filter classes that can fuse their estimate with other estimates.
+
+``cifilter.KalmanFilter`` is ``filterpy.kalman.KalmanFilter`` with one more method,
+:meth:`FusionMixin.fuse`; constructors, ``predict`` and ``update`` are filterpy's own.
+"""
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter as _FilterpyEKF
+from filterpy.kalman import KalmanFilter as _FilterpyKF
+from filterpy.kalman import UnscentedKalmanFilter as _FilterpyUKF
+
+from .registry import fuse as _fuse
+
+__all__ = ["ExtendedKalmanFilter", "FusionMixin", "KalmanFilter", "UnscentedKalmanFilter"]
+
+
+def _is_estimate_pair(item):
+    """An (x, P) pair: a 2-sequence of a vector and a matrix (not of two estimates)."""
+    if not (isinstance(item, (tuple, list)) and len(item) == 2):
+        return False
+    if any(hasattr(part, "P") for part in item):
+        return False
+    try:
+        return np.ndim(item[0]) >= 1 and np.ndim(item[1]) >= 2
+    except ValueError:  # a ragged pair of pairs
+        return False
+
+
+def _as_estimate_list(other):
+    """``other`` as a list of estimates: a filter, an (x, P) pair or a sequence of them."""
+    if hasattr(other, "x") and hasattr(other, "P"):
+        return [other]
+    if _is_estimate_pair(other):
+        return [other]
+    if isinstance(other, (tuple, list)) and len(other) > 0 and all(
+        (hasattr(o, "x") and hasattr(o, "P")) or _is_estimate_pair(o) for o in other
+    ):
+        return list(other)
+    raise TypeError(
+        "other must be a filter (an object with .x and .P), an (x, P) pair, or a non-empty "
+        f"list of them; got {type(other).__name__}"
+    )
+
+
+class FusionMixin:
+    """Adds :meth:`fuse` to a filterpy-style filter.
+
+    The filter must have attributes ``x`` (state, any shape holding n numbers, e.g.
+    ``(n, 1)`` or ``(n,)``) and ``P`` (``(n, n)`` covariance). Put the mixin first in the
+    bases so that its method is found: ``class MyFilter(FusionMixin, SomeFilterpyFilter)``.
+
+    Attributes
+    ----------
+    last_fusion : FusionResult or None
+        The result of the latest successful :meth:`fuse` (None before the first).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from filterpy.kalman import InformationFilter
+    >>> from cifilter import FusionMixin
+    >>> class FusingKF(FusionMixin, InformationFilter):
+    ...     pass
+    """
+
+    last_fusion = None
+
+    def fuse(self, other, method="ci", **options):
+        """Fuse this filter's estimate with other estimates whose correlation is unknown.
+
+        The filter's own ``(x, P)`` is the first input of the fusion rule. On success the
+        filter's ``x`` and ``P`` are replaced by the fused estimate (``x`` keeps its
+        filterpy shape), ``x_post`` and ``P_post`` are set to copies as ``update`` does,
+        and the result is stored in ``last_fusion``. The operation is atomic: if the
+        fusion raises, the filter is exactly as before. ``other`` is never modified.
+
+        Parameters
+        ----------
+        other : filter, (x, P) pair, or list of them
+            The estimates to fuse with: another filter (anything with ``.x`` and ``.P``),
+            an ``(x, P)`` pair, or a list of filters and pairs.
+        method : str, optional
+            A registered fusion rule (see :func:`cifilter.available_methods`), default
+            ``"ci"``.
+        **options
+            Options of the rule (e.g. ``criterion="det"`` or ``omega="fast"`` for
+            ``"ci"``).
+
+        Returns
+        -------
+        FusionResult
+            The fusion result (also stored in ``last_fusion``).
+
+        Raises
+        ------
+        TypeError
+            ``other`` is not an estimate or a list of estimates; an unknown option.
+        ValueError
+            Dimension mismatch, non-finite values, a covariance that is not symmetric
+            positive definite, batched inputs, or a bad option value.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from cifilter import KalmanFilter
+        >>> kf = KalmanFilter(dim_x=2, dim_z=1)
+        >>> kf.P = np.diag([1.0, 4.0])
+        >>> result = kf.fuse((np.ones(2), np.diag([4.0, 1.0])))
+        >>> kf.x.shape, float(np.trace(kf.P)), float(result.omega[0])
+        ((2, 1), 3.2, 0.5)
+        """
+        estimates = [(self.x, self.P)] + _as_estimate_list(other)
+        result = _fuse(estimates, method=method, **options)
+        x_shape = np.shape(self.x)
+        x = np.asarray(result.x)
+        if x.size != int(np.prod(x_shape)) or np.shape(result.P) != np.shape(self.P):
+            raise ValueError(
+                f"fusion gave x of shape {x.shape} and P of shape {np.shape(result.P)}; a "
+                f"filter with x of shape {x_shape} fuses single (unbatched) estimates only"
+            )
+        # Everything that can fail has run; now change the filter.
+        self.x = np.array(x.reshape(x_shape))
+        self.P = np.array(result.P)
+        self.x_post = self.x.copy()
+        self.P_post = self.P.copy()
+        self.last_fusion = result
+        return result
+
+
+class KalmanFilter(FusionMixin, _FilterpyKF):
+    """filterpy's ``KalmanFilter`` with :meth:`~FusionMixin.fuse`.
+
+    Same constructor and behaviour as ``filterpy.kalman.KalmanFilter``; see its
+    documentation for ``x``, ``P``, ``F``, ``Q``, ``H``, ``R``, ``predict`` and ``update``.
+
+    Parameters
+    ----------
+    dim_x : int
+        Number of state variables.
+    dim_z : int
+        Number of measurement inputs.
+    dim_u : int, optional
+        Size of the control input (default 0).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter import KalmanFilter
+    >>> kf = KalmanFilter(dim_x=2, dim_z=1)
+    >>> kf.F = np.array([[1.0, 1.0], [0.0, 1.0]])
+    >>> kf.H = np.array([[1.0, 0.0]])
+    >>> kf.predict(); kf.update(np.array([[1.0]]))
+    >>> _ = kf.fuse((np.array([1.0, 0.0]), np.eye(2)), method="ci")
+    """
+
+
+class ExtendedKalmanFilter(FusionMixin, _FilterpyEKF):
+    """filterpy's ``ExtendedKalmanFilter`` with :meth:`~FusionMixin.fuse`.
+
+    Same constructor and behaviour as ``filterpy.kalman.ExtendedKalmanFilter``.
+
+    Parameters
+    ----------
+    dim_x : int
+        Number of state variables.
+    dim_z : int
+        Number of measurement inputs.
+    dim_u : int, optional
+        Size of the control input (default 0).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter import ExtendedKalmanFilter
+    >>> ekf = ExtendedKalmanFilter(dim_x=2, dim_z=1)
+    >>> _ = ekf.fuse((np.zeros(2), np.eye(2)))
+    """
+
+
+class UnscentedKalmanFilter(FusionMixin, _FilterpyUKF):
+    """filterpy's ``UnscentedKalmanFilter`` with :meth:`~FusionMixin.fuse`.
+
+    Same constructor and behaviour as ``filterpy.kalman.UnscentedKalmanFilter``; its
+    state ``x`` is a 1-D array and stays one after fusion.
+
+    Parameters
+    ----------
+    dim_x : int
+        Number of state variables.
+    dim_z : int
+        Number of measurement inputs.
+    dt : float
+        Time step.
+    hx : callable
+        Measurement function.
+    fx : callable
+        State transition function.
+    points : object
+        Sigma point generator, e.g. ``filterpy.kalman.MerweScaledSigmaPoints``.
+    sqrt_fn, x_mean_fn, z_mean_fn, residual_x, residual_z, state_add : callable, optional
+        As in filterpy: matrix square root, state and measurement means, residuals and
+        state addition (for angles and other non-Euclidean states).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from filterpy.kalman import MerweScaledSigmaPoints
+    >>> from cifilter import UnscentedKalmanFilter
+    >>> points = MerweScaledSigmaPoints(2, alpha=0.1, beta=2.0, kappa=1.0)
+    >>> ukf = UnscentedKalmanFilter(2, 1, 1.0, hx=lambda x: x[:1], fx=lambda x, dt: x,
+    ...                             points=points)
+    >>> _ = ukf.fuse((np.ones(2), np.eye(2)))
+    >>> ukf.x.shape
+    (2,)
+    """

@@ -1,0 +1,69 @@
+"""Documentation: the Sphinx site builds cleanly, every public name has a full docstring,
+and the code is ruff clean."""
+
+import importlib
+import inspect
+import pkgutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from numpydoc.validate import validate
+
+import cifilter
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# numpydoc checks every public name must pass: a docstring with a summary, documented
+# parameters (and no unknown ones), a Returns section and an Examples section.
+REQUIRED_CHECKS = {"GL08", "SS01", "PR01", "PR02", "RT01", "EX01"}
+
+
+def public_names():
+    """(import path, object) of every public function, class and method of the package."""
+    found = {}
+    modules = [cifilter] + [
+        importlib.import_module(info.name)
+        for info in pkgutil.walk_packages(cifilter.__path__, prefix="cifilter.")
+        if not any(part.startswith("_") for part in info.name.split("."))
+    ]
+    for module in modules:
+        for name in getattr(module, "__all__", []):
+            obj = getattr(module, name)
+            if not (inspect.isfunction(obj) or inspect.isclass(obj)):
+                continue
+            path = f"{obj.__module__}.{obj.__qualname__}"
+            found[path] = obj
+            if inspect.isclass(obj):
+                for member_name, member in vars(obj).items():
+                    if inspect.isfunction(member) and not member_name.startswith("_"):
+                        found[f"{path}.{member_name}"] = member
+    return sorted(found)
+
+
+@pytest.mark.parametrize("path", public_names())
+def test_public_docstring_is_complete(path):
+    report = validate(path)
+    problems = [f"{code}: {message}" for code, message in report["errors"]
+                if code in REQUIRED_CHECKS]
+    if inspect.isclass(report.get("obj", None)) or path.endswith("FusionResult"):
+        problems = [p for p in problems if not p.startswith("RT01")]
+    assert not problems, f"{path}:\n" + "\n".join(problems)
+
+
+def test_sphinx_site_builds_without_warnings(tmp_path):
+    completed = subprocess.run(
+        [sys.executable, "-m", "sphinx", "-W", "--keep-going", "-b", "html", "-q",
+         str(ROOT / "docs"), str(tmp_path / "html")],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+
+
+def test_code_is_ruff_clean():
+    completed = subprocess.run(
+        [sys.executable, "-m", "ruff", "check", "--no-cache", str(ROOT)],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )
+    assert completed.returncode == 0, completed.stdout + completed.stderr

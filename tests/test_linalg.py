@@ -1,0 +1,90 @@
+"""Internal batched linear algebra and input validation."""
+
+import numpy as np
+import pytest
+
+from cifilter._linalg import (
+    cho_inverse,
+    cho_solve,
+    cholesky,
+    logdet_from_cholesky,
+    lower_inverse,
+    mahalanobis_sq,
+    solve_lower,
+)
+from cifilter._validation import as_estimates, as_rng, check_scalar, check_weights
+
+rng = np.random.default_rng(7)
+
+
+def spd(size, n):
+    A = rng.standard_normal(size + (n, n))
+    return A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(n)
+
+
+@pytest.mark.parametrize("size", [(), (1,), (5,), (3, 4)])
+@pytest.mark.parametrize("n", [1, 2, 5])
+def test_triangular_and_cholesky_solves_match_lapack(size, n):
+    P = spd(size, n)
+    L = cholesky(P)
+    B = rng.standard_normal(size + (n, 3))
+    np.testing.assert_allclose(solve_lower(L, B), np.linalg.solve(L, B), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(lower_inverse(L), np.linalg.inv(L), rtol=1e-10, atol=1e-12)
+    inverse = cho_inverse(L)
+    np.testing.assert_array_equal(inverse, np.swapaxes(inverse, -1, -2))
+    np.testing.assert_allclose(inverse, np.linalg.inv(P), rtol=1e-8, atol=1e-10)
+    b = rng.standard_normal(size + (n,))
+    np.testing.assert_allclose(cho_solve(L, b), np.linalg.solve(P, b[..., None])[..., 0],
+                               rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(logdet_from_cholesky(L), np.linalg.slogdet(P)[1], rtol=1e-10)
+
+
+def test_mahalanobis_broadcasts_and_matches_the_definition():
+    P = spd((), 3)
+    e = rng.standard_normal((6, 3))
+    expected = np.einsum("ki,ij,kj->k", e, np.linalg.inv(P), e)
+    np.testing.assert_allclose(mahalanobis_sq(e, P), expected, rtol=1e-10)
+
+
+def test_cholesky_names_the_argument_and_index():
+    P = np.stack([np.eye(2), np.diag([1.0, -2.0])])
+    with pytest.raises(ValueError, match=r"P\[1\] is not positive definite.*-2"):
+        cholesky(P, "P")
+    with pytest.raises(ValueError, match="not positive definite"):
+        cholesky(np.diag([np.nan, 1.0]), "P")
+
+
+@pytest.mark.parametrize("x, column", [
+    ([np.zeros(3), np.ones(3)], False),
+    ([np.zeros((3, 1)), np.ones(3)], True),
+    (np.zeros((2, 3)), False),
+    (np.zeros((2, 3, 1)), True),
+    (np.zeros((7, 2, 3)), False),
+    (np.zeros((7, 2, 3, 1)), True),
+])
+def test_vector_styles_are_recognised(x, column):
+    est = as_estimates(x, np.stack([np.eye(3)] * 2))
+    assert est.column is column
+    assert est.x.shape[-2:] == (2, 3)
+
+
+def test_one_dimensional_styles_are_unambiguous():
+    P = np.ones((2, 1, 1))
+    assert not as_estimates(np.zeros((2, 1)), P).column  # two scalars in a row
+    assert as_estimates(np.zeros((2, 1, 1)), P).column  # two 1x1 columns
+    est = as_estimates(np.zeros((5, 2, 1)), P)  # a batch of five
+    assert not est.column and est.batch_shape == (5,)
+
+
+def test_helpers_reject_bad_scalars_weights_and_rngs():
+    with pytest.raises(ValueError, match=r"alpha must lie in \(0, 1\)"):
+        check_scalar(1.0, "alpha", low=0, high=1, low_open=True, high_open=True)
+    with pytest.raises(TypeError, match="alpha must be a real number"):
+        check_scalar("0.1", "alpha")
+    with pytest.raises(ValueError, match="finite"):
+        check_scalar(float("nan"), "alpha")
+    with pytest.raises(ValueError, match="simplex"):
+        check_weights([0.7, 0.7], 2)
+    with pytest.raises(TypeError, match="rng"):
+        as_rng("seed")
+    assert as_rng(3).integers(1000) == np.random.default_rng(3).integers(1000)
