@@ -22,5 +22,4 @@ autodoc_typehints = "none"
 
 exclude_patterns = ["_build"]
 html_theme = "alabaster"
-html_static_path = ["_static"]
 html_theme_options = {"description": "Fusion under unknown correlation, on top of filterpy"}
