@@ -49,21 +49,24 @@ agree to machine precision.
 
 import numbers
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Optional
+from typing import Any, Optional
 
 import numpy as np
 from scipy import linalg as sla
 
-from ._linalg import cho_inverse, cho_solve, cholesky, lower_inverse, solve_lower, symmetrize
+from ._linalg import cho_inverse, cho_solve, cholesky, lower_inverse, symmetrize
 from ._optimize import minimize_convex_interval, minimize_convex_simplex
-from ._validation import (
-    SYMMETRY_RTOL,
-    as_covariances,
-    as_float_array,
-    check_covariances,
-    check_finite,
-    check_int,
+from ._riccati import (
+    Terms,
+    as_matrix,
+    as_model,
+    broadcast_terms,
+    check_steps_available,
+    horizon_terms,
+    riccati,
+    update,
 )
+from ._validation import as_covariances, as_float_array, check_covariances, check_int
 from .ci import _criterion_value, _parse_criterion, ci_weights
 
 __all__ = [
@@ -75,203 +78,6 @@ __all__ = [
     "propagate_bound",
     "steady_state_covariance",
 ]
-
-
-# --------------------------------------------------------------------------- the model
-class _Model(NamedTuple):
-    """A validated linear model: x+ = F x + G w, z = H x + v."""
-
-    F: np.ndarray  # (..., n, n)
-    noise: np.ndarray  # G Q G^T, (..., n, n)
-    steps: Optional[tuple]  # per-step (H, R) or None entries; None: ``constant`` every step
-    constant: Optional[tuple]  # (H, R) used at every step, or None (prediction only)
-
-    def measurement(self, step):
-        """(H, R) of step ``step`` (0-based) or None for a prediction-only step."""
-        return self.constant if self.steps is None else self.steps[step]
-
-
-def _is_step_sequence(value):
-    """A list/tuple of matrices (or None): one entry per step, not one nested-list matrix."""
-    return isinstance(value, (list, tuple)) and len(value) > 0 and all(
-        item is None or np.ndim(item) >= 2 for item in value
-    )
-
-
-def _matrix(value, name, shape=None):
-    array = as_float_array(value, name)
-    if array.ndim < 2:
-        raise ValueError(f"{name} must be a matrix (..., rows, columns), got shape {array.shape}")
-    check_finite(array, name)
-    if shape is not None:
-        rows, columns = shape
-        if (rows is not None and array.shape[-2] != rows) or array.shape[-1] != columns:
-            want = f"({'p' if rows is None else rows}, {columns})"
-            raise ValueError(f"{name} must have shape (..., {want[1:-1]}), got shape {array.shape}")
-    return array
-
-
-def _psd(value, size, name):
-    """A symmetric positive semidefinite (..., size, size) matrix; a number means value * I."""
-    if isinstance(value, numbers.Real) and not isinstance(value, bool):
-        value = float(value) * np.eye(size)
-    M = _matrix(value, name, (size, size))
-    scale = np.abs(M).max(axis=(-2, -1), keepdims=True)
-    if np.any(np.abs(M - np.swapaxes(M, -1, -2)) > SYMMETRY_RTOL * scale):
-        raise ValueError(f"{name} must be symmetric")
-    M = symmetrize(M)
-    smallest = np.linalg.eigvalsh(M)[..., 0]
-    if np.any(smallest < -1e-10 * scale[..., 0, 0]):
-        raise ValueError(
-            f"{name} must be positive semidefinite (smallest eigenvalue {smallest.min():.3g})"
-        )
-    return M
-
-
-def _measurement(H, R, n, names):
-    """Validate one measurement model; None and None mean no measurement at this step."""
-    h_name, r_name = names
-    if H is None and R is None:
-        return None
-    if H is None or R is None:
-        missing, given = (h_name, r_name) if H is None else (r_name, h_name)
-        raise ValueError(f"{missing} is None but {given} is not: give both or neither")
-    H = _matrix(H, h_name, (None, n))
-    p = H.shape[-2]
-    if isinstance(R, numbers.Real) and not isinstance(R, bool):
-        R = float(R) * np.eye(p)  # filterpy's convention for a scalar R
-    R = as_float_array(R, r_name)
-    if R.ndim < 2 or R.shape[-2:] != (p, p):
-        raise ValueError(f"{r_name} must have shape (..., {p}, {p}) to match {h_name}, "
-                         f"got shape {R.shape}")
-    R, _ = check_covariances(R, r_name)
-    return H, R
-
-
-def _as_model(F, Q, H, R, G, n, steps=None):
-    """Validate the local filter's model for state dimension ``n``.
-
-    ``steps`` is the number of per-step entries H and R must have when they are sequences.
-    """
-    F = _matrix(F, "F", (n, n))
-    if G is None:
-        noise = _psd(Q, n, "Q")
-    else:
-        G = _matrix(G, "G")
-        if G.shape[-2] != n:
-            raise ValueError(f"G must have shape (..., {n}, m), got shape {G.shape}")
-        Qm = _psd(Q, G.shape[-1], "Q")
-        noise = symmetrize(G @ Qm @ np.swapaxes(G, -1, -2))
-    if _is_step_sequence(H) or (H is None and _is_step_sequence(R)):
-        if not (isinstance(R, (list, tuple)) and isinstance(H, (list, tuple))
-                and len(R) == len(H)):
-            raise ValueError("when H is a sequence with one matrix per step, R must be a "
-                             "sequence of the same length (and vice versa)")
-        if steps is not None and len(H) != steps:
-            raise ValueError(f"H and R have {len(H)} entries but the horizon needs one per "
-                             f"step, {steps}")
-        entries = tuple(
-            _measurement(h, r, n, (f"H[{j}]", f"R[{j}]")) for j, (h, r) in enumerate(zip(H, R))
-        )
-        return _Model(F, noise, entries, None)
-    return _Model(F, noise, None, _measurement(H, R, n, ("H", "R")))
-
-
-def _check_steps_available(model, horizon):
-    if model.steps is not None and len(model.steps) < horizon:
-        raise ValueError(f"H and R have {len(model.steps)} entries, fewer than the horizon "
-                         f"{horizon}")
-
-
-# --------------------------------------------------------------------------- Riccati steps
-def _predict(P, model):
-    """Eq. (16): F P F^T + G Q G^T."""
-    return symmetrize(model.F @ P @ np.swapaxes(model.F, -1, -2) + model.noise)
-
-
-def _update(M, measurement):
-    """Eqs. (32)-(33): optimal gain and Joseph-form update of the prior bound ``M``.
-
-    Returns the posterior, the closed-loop factor ``I - K H`` and the whitened
-    measurement matrix ``L_S^-1 H`` (``S = H M H^T + R = L_S L_S^T``).
-    """
-    H, R = measurement
-    HM = H @ M
-    S = symmetrize(HM @ np.swapaxes(H, -1, -2) + R)
-    L = cholesky(S, "innovation covariance H M H^T + R")
-    K = np.swapaxes(cho_solve(L, HM), -1, -2)
-    A = np.eye(M.shape[-1]) - K @ H
-    P = A @ M @ np.swapaxes(A, -1, -2) + K @ R @ np.swapaxes(K, -1, -2)
-    return symmetrize(P), A, L, H
-
-
-def _riccati(P, model, horizon):
-    """Bounds after 0, 1, ..., horizon steps (list)."""
-    bounds = [P]
-    for step in range(horizon):
-        M = _predict(bounds[-1], model)
-        measurement = model.measurement(step)
-        bounds.append(M if measurement is None else _update(M, measurement)[0])
-    return bounds
-
-
-class _Terms(NamedTuple):
-    """The horizon terms of (*): P_kappa(P_0) = P_c + exp(2 s) Psi (P_0^-1 + Gamma)^-1 Psi^T."""
-
-    P_c: np.ndarray  # (..., n, n)
-    Psi: np.ndarray  # (..., n, n), normalised to max |entry| = 1 (or 0)
-    log_scale: np.ndarray  # (...), s
-    Gamma: np.ndarray  # (..., n, n)
-
-
-def _horizon_terms(model, horizon, n, collect=None):
-    """Run the Riccati recursion from P = 0 and return the terms of (*) at ``horizon``.
-
-    ``collect``: sorted horizons at which to record the terms (returns a list); default only
-    the last. The information about the initial state is ``Gamma = sum_j B_j^T B_j`` with
-    ``B_j = L_S^-1 H F Psi_{j-1}`` (the innovations of the filter started at P = 0 depend on
-    the initial state through ``H F Psi_{j-1}`` and have covariance ``S_j``).
-    """
-    batch = np.broadcast_shapes(model.F.shape[:-2], model.noise.shape[:-2])
-    P_c = np.zeros(batch + (n, n))
-    Psi = np.broadcast_to(np.eye(n), batch + (n, n)).copy()
-    log_scale = np.zeros(batch)
-    Gamma = np.zeros(batch + (n, n))
-    wanted = [horizon] if collect is None else list(collect)
-    found = []
-    for step in range(horizon + 1):
-        if step in wanted:
-            found.append(_Terms(P_c, Psi, log_scale, Gamma))
-        if step == horizon:
-            break
-        M = _predict(P_c, model)
-        Psi = model.F @ Psi
-        measurement = model.measurement(step)
-        if measurement is not None:
-            P_c, A, L, H = _update(M, measurement)
-            B = solve_lower(L, H @ Psi)
-            Gamma = symmetrize(Gamma + np.exp(2.0 * log_scale)[..., None, None]
-                               * (np.swapaxes(B, -1, -2) @ B))
-            Psi = A @ Psi
-        else:
-            P_c = M
-        # Keep Psi of order one; its size lives in log_scale (no underflow at long horizons).
-        size = np.abs(Psi).max(axis=(-2, -1))
-        size = np.where(size > 0, size, 1.0)
-        Psi = Psi / size[..., None, None]
-        log_scale = log_scale + np.log(size)
-        batch = np.broadcast_shapes(batch, P_c.shape[:-2], Gamma.shape[:-2], Psi.shape[:-2])
-        P_c, Gamma = np.broadcast_to(P_c, batch + (n, n)), np.broadcast_to(Gamma, batch + (n, n))
-        Psi = np.broadcast_to(Psi, batch + (n, n))
-        log_scale = np.broadcast_to(log_scale, batch)
-    return found if collect is not None else found[0]
-
-
-def _broadcast_terms(terms, batch):
-    n = terms.P_c.shape[-1]
-    return _Terms(*(np.broadcast_to(t, batch + (n, n)) for t in terms[:2]),
-                  np.broadcast_to(terms.log_scale, batch),
-                  np.broadcast_to(terms.Gamma, batch + (n, n)))
 
 
 # --------------------------------------------------------------------------- the weights
@@ -386,7 +192,7 @@ def _optimal_weights(Ps, terms, kind, W):
     batch = np.broadcast_shapes(S.shape[:-3], terms.P_c.shape[:-2], terms.log_scale.shape,
                                 () if W is None else W.shape[:-2])
     S = np.broadcast_to(S, batch + S.shape[-3:])
-    terms = _broadcast_terms(terms, batch)
+    terms = broadcast_terms(terms, batch)
     if est.count == 2:
         weights, iterations, converged = _pair_weights(S, terms, kind, W)
         solver = "diagonalise"
@@ -481,8 +287,8 @@ def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
     if P.ndim < 2 or P.shape[-1] != P.shape[-2]:
         raise ValueError(f"P must hold square matrices (..., n, n), got shape {P.shape}")
     P, _ = check_covariances(P, "P")
-    model = _as_model(F, Q, H, R, G, P.shape[-1], steps=horizon if horizon else None)
-    bounds = _riccati(P, model, horizon)
+    model = as_model(F, Q, H, R, G, P.shape[-1], steps=horizon if horizon else None)
+    bounds = riccati(P, model, horizon)
     if not history:
         return bounds[-1]
     batch = np.broadcast_shapes(*(b.shape[:-2] for b in bounds))
@@ -534,8 +340,8 @@ class HorizonOmega:
 def _choose(Ps, model, horizon, criterion, n):
     """Horizon-optimal weights, value and bound, and the recursive approach's for comparison."""
     kind, W = _parse_criterion(criterion, n)
-    _check_steps_available(model, horizon)
-    terms_list = _horizon_terms(model, horizon, n, collect=sorted({0, horizon}))
+    check_steps_available(model, horizon)
+    terms_list = horizon_terms(model, horizon, n, collect=sorted({0, horizon}))
     start, terms = terms_list[0], terms_list[-1]
     weights, info = _optimal_weights(Ps, terms, kind, W)
     recursive, _ = _optimal_weights(Ps, start, kind, W)
@@ -617,7 +423,7 @@ def optimal_omega(PA, PB, F, Q, H, R, horizon, criterion="trace", G=None):
     """
     horizon = check_int(horizon, "horizon", low=0)
     Ps = _pair(PA, PB)
-    model = _as_model(F, Q, H, R, G, Ps.shape[-1])
+    model = as_model(F, Q, H, R, G, Ps.shape[-1])
     weights, value, P, info = _choose(Ps, model, horizon, criterion, Ps.shape[-1])
     info["omega_recursive"] = info["omega_recursive"][..., 0]
     return HorizonOmega(weights[..., 0], value, P, info)
@@ -693,7 +499,7 @@ def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None):
     """
     horizon = check_int(horizon, "horizon", low=0)
     est = as_covariances(Ps, name="Ps")
-    model = _as_model(F, Q, H, R, G, est.dim)
+    model = as_model(F, Q, H, R, G, est.dim)
     weights, value, P, info = _choose(est.P, model, horizon, criterion, est.dim)
     return HorizonOmega(weights, value, P, info)
 
@@ -752,9 +558,9 @@ def steady_state_covariance(F, Q, H, R, G=None):
     >>> steady_state_covariance(F, Q, np.array([[1.0, 0.0]]), 1.0).round(4).tolist()
     [[0.6076, 0.5772], [0.5772, 1.5483]]
     """
-    F0 = _matrix(F, "F")
+    F0 = as_matrix(F, "F")
     n = F0.shape[-1]
-    model = _as_model(F0, Q, H, R, G, n)
+    model = as_model(F0, Q, H, R, G, n)
     if model.steps is not None:
         raise ValueError("steady_state_covariance needs one H and R, not a sequence per step")
     parts = [model.F, model.noise] + ([] if model.constant is None else list(model.constant))
@@ -775,7 +581,7 @@ def steady_state_covariance(F, Q, H, R, G=None):
         except (np.linalg.LinAlgError, ValueError) as exc:
             raise ValueError(f"the Riccati equation has no stabilising solution ({exc}); "
                              "is (F, H) detectable?") from None
-        out[index] = _update(symmetrize(M), (H_i, R_i))[0]
+        out[index] = update(symmetrize(M), (H_i, R_i))[0]
     return symmetrize(out)
 
 
@@ -915,8 +721,8 @@ def _as_horizons(horizons):
 def _stack_terms(terms_list):
     batch = np.broadcast_shapes(*(t.log_scale.shape for t in terms_list),
                                 *(t.P_c.shape[:-2] for t in terms_list))
-    terms_list = [_broadcast_terms(t, batch) for t in terms_list]
-    return _Terms(*(np.stack(parts, axis=len(batch)) for parts in zip(*terms_list)))
+    terms_list = [broadcast_terms(t, batch) for t in terms_list]
+    return Terms(*(np.stack(parts, axis=len(batch)) for parts in zip(*terms_list)))
 
 
 # Horizons at which the limit of omega is looked for; converged when the last two agree.
@@ -989,13 +795,13 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None):
     Ps = _pair(PA, PB)
     n = Ps.shape[-1]
     kind, W = _parse_criterion(criterion, n)
-    model = _as_model(F, Q, H, R, G, n)
-    _check_steps_available(model, int(horizons.max()))
+    model = as_model(F, Q, H, R, G, n)
+    check_steps_available(model, int(horizons.max()))
     distinct = sorted(set(horizons.tolist()) | {0})
     limit_at = [] if model.steps is not None else [h for h in _LIMIT_HORIZONS
                                                     if h not in distinct]
     everything = sorted(set(distinct) | set(limit_at))
-    collected = dict(zip(everything, _horizon_terms(model, everything[-1], n,
+    collected = dict(zip(everything, horizon_terms(model, everything[-1], n,
                                                      collect=everything)))
     terms = _stack_terms([collected[h] for h in horizons])
     Ps_k = Ps[..., None, :, :, :]
