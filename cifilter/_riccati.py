@@ -200,10 +200,11 @@ def horizon_terms(model, horizon, n, collect=None):
         size = np.where(size > 0, size, 1.0)
         Psi = Psi / size[..., None, None]
         log_scale = log_scale + np.log(size)
-        batch = np.broadcast_shapes(batch, P_c.shape[:-2], Gamma.shape[:-2], Psi.shape[:-2])
-        P_c, Gamma = np.broadcast_to(P_c, batch + (n, n)), np.broadcast_to(Gamma, batch + (n, n))
-        Psi = np.broadcast_to(Psi, batch + (n, n))
-        log_scale = np.broadcast_to(log_scale, batch)
+        shapes = (P_c.shape[:-2], Gamma.shape[:-2], Psi.shape[:-2], log_scale.shape)
+        if any(shape != batch for shape in shapes):  # a batched H or R widened the batch
+            batch = np.broadcast_shapes(batch, *shapes)
+            P_c, Gamma, Psi = (np.broadcast_to(M, batch + (n, n)) for M in (P_c, Gamma, Psi))
+            log_scale = np.broadcast_to(log_scale, batch)
     return found if collect is not None else found[0]
 
 
