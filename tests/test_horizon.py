@@ -591,3 +591,15 @@ def test_extended_filter_needs_a_future_model():
     r = ekf.fuse((np.zeros(2), np.eye(2)), horizon=3,
                  future=dict(F=ekf.F, Q=ekf.Q, H=np.array([[1.0, 0.0]]), R=ekf.R))
     assert r.info["horizon"] == 3 and ekf.last_fusion is r
+
+
+# ----------------------------------------------------------------- reproduction command
+def test_reproduce_ajgl_prints_the_papers_numbers_and_writes_figs_3_to_8(tmp_path, capsys):
+    from cifilter.cli import main
+
+    assert main(["reproduce", "ajgl", "--horizons", "15", "--plot", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    for text in ("0.6000", "0.4124", "0.0418", "0.8532", "0.8841", "0.6949", "0.1370",
+                 "0.6927", "[0.6076 0.5772; 0.5772 1.5483]", "[2.1216 1.1806; 1.1806 1.2427]"):
+        assert text in out
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"fig{i}.png" for i in range(3, 9)]
