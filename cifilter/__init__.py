@@ -14,6 +14,7 @@ from . import optimal as _optimal  # noqa: F401  (registers "naive", "optimal")
 from ._linalg import mahalanobis_sq
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
+from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
 from .optimal import naive_fusion, optimal_fusion
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
@@ -33,8 +34,12 @@ __all__ = [
     "covariance_intersection",
     "fuse",
     "get_method",
+    "horizon_study",
     "mahalanobis_sq",
     "naive_fusion",
     "optimal_fusion",
+    "optimal_omega",
+    "propagate_bound",
     "register_method",
+    "steady_state_covariance",
 ]

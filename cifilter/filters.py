@@ -9,6 +9,7 @@ from filterpy.kalman import ExtendedKalmanFilter as _FilterpyEKF
 from filterpy.kalman import KalmanFilter as _FilterpyKF
 from filterpy.kalman import UnscentedKalmanFilter as _FilterpyUKF
 
+from ._validation import as_estimates
 from .registry import fuse as _fuse
 
 __all__ = ["ExtendedKalmanFilter", "FusionMixin", "KalmanFilter", "UnscentedKalmanFilter"]
@@ -42,6 +43,79 @@ def _as_estimate_list(other):
     )
 
 
+_MODEL_FIELDS = ("F", "Q", "H", "R", "G")
+
+
+def _future_model(filt, future):
+    """The model (F, Q, H, R, G) of the steps after the fusion: ``future`` or the filter's."""
+    if future is None:
+        missing = [name for name in ("F", "Q", "H", "R")
+                   if not isinstance(getattr(filt, name, None), (np.ndarray, int, float))]
+        if missing:
+            raise ValueError(
+                f"horizon= needs the filter's linear model, but {type(filt).__name__} has no "
+                f"matrix {', '.join(missing)}; pass future=dict(F=..., Q=..., H=..., R=...)"
+            )
+        return {name: getattr(filt, name) for name in ("F", "Q", "H", "R")}
+    if isinstance(future, dict):
+        unknown = sorted(set(future) - set(_MODEL_FIELDS))
+        if unknown:
+            raise ValueError(f"future has unknown entries {unknown}; it takes "
+                             f"{', '.join(_MODEL_FIELDS)}")
+        get = future.get
+    else:
+        def get(name):
+            return getattr(future, name, None)
+    if get("F") is None or get("Q") is None:
+        raise ValueError("future must give at least F and Q (and H, R for measurements)")
+    return {name: get(name) for name in _MODEL_FIELDS}
+
+
+def _fuse_for_horizon(filt, estimates, method, horizon, future, options):
+    """CI with the weights chosen for ``horizon`` steps of the filter's (or ``future``) model."""
+    from .horizon import horizon_weights  # only filters that look ahead need it
+
+    if horizon is None:
+        raise ValueError("future= describes the steps after the fusion; give horizon= too")
+    if method != "ci":
+        raise ValueError(f"horizon= chooses Covariance Intersection weights and needs "
+                         f"method='ci', got method={method!r}")
+    if "omega" in options:
+        raise ValueError("omega= fixes the weights and horizon= chooses them; give one")
+    unknown = sorted(set(options) - {"criterion"})
+    if unknown:
+        raise TypeError(f"method 'ci' with horizon= accepts the option 'criterion', got "
+                        f"{', '.join(map(repr, unknown))}")
+    criterion = options.get("criterion", "trace")
+    model = _future_model(filt, future)
+    pairs = [_as_pair(item) for item in estimates]
+    stacked = as_estimates([pair[0] for pair in pairs], [pair[1] for pair in pairs],
+                           names=("estimates' x", "estimates' P"))
+    choice = horizon_weights(stacked.P, model["F"], model["Q"], model["H"], model["R"], horizon,
+                             criterion=criterion, G=model.get("G"))
+    result = _fuse(estimates, method="ci", criterion=criterion, omega=choice.omega)
+    info = dict(result.info)
+    info.update(
+        rule="horizon",
+        horizon=choice.info["horizon"],
+        horizon_value=choice.value,
+        horizon_value_recursive=choice.info["value_recursive"],
+        omega_recursive=choice.info["omega_recursive"],
+        model="future" if future is not None else "filter",
+        iterations=choice.info["iterations"],
+        converged=choice.info["converged"],
+        solver=choice.info["solver"],
+    )
+    return result.replace(info=info)
+
+
+def _as_pair(item):
+    """(x, P) of a filter or of a pair."""
+    if hasattr(item, "x") and hasattr(item, "P"):
+        return item.x, item.P
+    return item[0], item[1]
+
+
 class FusionMixin:
     """Adds :meth:`fuse` to a filterpy-style filter.
 
@@ -65,7 +139,7 @@ class FusionMixin:
 
     last_fusion = None
 
-    def fuse(self, other, method="ci", **options):
+    def fuse(self, other, method="ci", *, horizon=None, future=None, **options):
         """Fuse this filter's estimate with other estimates whose correlation is unknown.
 
         The filter's own ``(x, P)`` is the first input of the fusion rule. On success the
@@ -82,6 +156,21 @@ class FusionMixin:
         method : str, optional
             A registered fusion rule (see :func:`cifilter.available_methods`), default
             ``"ci"``.
+        horizon : int, optional
+            Only for ``method="ci"``: choose the weights that minimise the criterion of the
+            bound ``horizon`` predict/update steps after the fusion (the batch approach of
+            Ajgl et al. 2014, :func:`cifilter.horizon.horizon_weights`), using the filter's
+            own ``F``, ``Q``, ``H``, ``R`` or the ``future`` model. ``horizon=0`` is ordinary
+            CI. The choice is recorded in ``last_fusion.info`` (``rule="horizon"``,
+            ``horizon``, ``horizon_value`` and, for comparison, ``horizon_value_recursive``
+            and ``omega_recursive``: the criterion at the horizon with the weights that are
+            optimal now, and those weights).
+        future : mapping or object, optional
+            The model of the steps after the fusion, instead of the filter's own: a mapping
+            or an object (such as another ``KalmanFilter``) with ``F`` and ``Q`` and
+            optionally ``H``, ``R`` (None or absent: no measurements) and ``G``; ``H`` and
+            ``R`` may be per-step lists (see :func:`cifilter.horizon.propagate_bound`).
+            Needed for filters without matrices ``F``, ``Q``, ``H``, ``R`` (the EKF and UKF).
         **options
             Options of the rule (e.g. ``criterion="det"`` or ``omega="fast"`` for
             ``"ci"``).
@@ -97,7 +186,9 @@ class FusionMixin:
             ``other`` is not an estimate or a list of estimates; an unknown option.
         ValueError
             Dimension mismatch, non-finite values, a covariance that is not symmetric
-            positive definite, batched inputs, or a bad option value.
+            positive definite, batched inputs, or a bad option value; ``horizon`` with a
+            method other than ``"ci"`` or together with ``omega``, ``future`` without
+            ``horizon``, a filter without a linear model and no ``future``.
 
         Examples
         --------
@@ -108,9 +199,19 @@ class FusionMixin:
         >>> result = kf.fuse((np.ones(2), np.diag([4.0, 1.0])))
         >>> kf.x.shape, float(np.trace(kf.P)), float(result.omega[0])
         ((2, 1), 3.2, 0.5)
+
+        Choosing omega for the bound after ten more steps of this filter:
+
+        >>> kf.F, kf.H = np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([[1.0, 0.0]])
+        >>> result = kf.fuse((np.ones(2), np.diag([4.0, 1.0])), horizon=10)
+        >>> result.info["rule"], result.info["horizon"]
+        ('horizon', 10)
         """
         estimates = [(self.x, self.P)] + _as_estimate_list(other)
-        result = _fuse(estimates, method=method, **options)
+        if horizon is not None or future is not None:
+            result = _fuse_for_horizon(self, estimates, method, horizon, future, options)
+        else:
+            result = _fuse(estimates, method=method, **options)
         x_shape = np.shape(self.x)
         x = np.asarray(result.x)
         if x.size != int(np.prod(x_shape)) or np.shape(result.P) != np.shape(self.P):

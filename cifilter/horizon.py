@@ -1,0 +1,843 @@
+"""Horizon-aware Covariance Intersection: choose omega for the bound after future filtering.
+
+Ajgl, Šimandl, Reinhardt, Noack & Hanebeck (2014) show that the CI weight that minimises
+the fused bound *now* is not the weight that minimises the bound after the filter has
+processed more measurements. With the block-diagonal bound (13) of the joint covariance
+fixed by omega, the best estimator of the state ``kappa`` steps later (the *batch*
+approach, their Fig. 1) is the Kalman filter started from the CI bound (eqs. 16, 31-33);
+omega is then chosen to minimise a criterion of that propagated bound. The *recursive*
+approach (their Fig. 2) fixes omega at ``kappa = 0`` and filters on.
+
+How the minimisation works (and why it is global)
+--------------------------------------------------
+Run the local filter's Riccati recursion once from ``P = 0`` (the initial state known
+exactly). It gives ``P_c`` (the bound if the initial state were known), the closed-loop
+transition ``Psi = prod_j (I - K_j H_j) F`` and the information ``Gamma`` that the future
+measurements carry about the initial state. For every initial bound ``P_0``
+
+    P_kappa(P_0) = P_c + Psi (P_0^-1 + Gamma)^-1 Psi^T                                (*)
+
+(the superposition formula for Riccati solutions with different initial conditions, or
+generalised least squares on the stacked initial estimates, process noises and
+measurements). The CI bound has ``P_0(omega)^-1 = omega P_A^-1 + (1 - omega) P_B^-1``, so
+
+    P_kappa(omega) = P_c + Psi S(omega)^-1 Psi^T,   S(omega) = omega S_A + (1 - omega) S_B,
+    S_A = P_A^-1 + Gamma,   S_B = P_B^-1 + Gamma,
+
+with ``S`` affine in omega. The matrix inverse is operator convex, so ``P_kappa(omega)`` is
+matrix convex and ``trace(W P_kappa)`` is a convex function of omega. ``log det P_kappa``
+is convex as well: if ``P_c`` is invertible, ``log det P_kappa = log det(S + Psi^T P_c^-1
+Psi) - log det S + const``, whose second derivative ``tr(S^-1 D S^-1 D) - tr((S + G)^-1 D
+(S + G)^-1 D)`` (``D = S_A - S_B``, ``G = Psi^T P_c^-1 Psi >= 0``) is non-negative because
+``X -> tr(X D X D)`` increases with ``X`` in the positive semidefinite order (its gradient
+``2 D X D`` is positive semidefinite); a singular ``P_c`` is the limit of invertible ones.
+The same holds on the simplex for N estimates (``S(w) = sum_i w_i S_i``). Hence every
+criterion here is convex in omega at every horizon, although the propagated bound is a
+rational function of omega of growing degree, and a local minimum is the global one.
+
+For two estimates, ``S_B = L L^T`` and ``L^-1 S_A L^-T = U diag(mu) U^T`` give ``S(omega)^-1 =
+T diag(1 / (1 + omega (mu_k - 1))) T^T`` with ``T = L^-T U``, so the first and second
+derivatives of the criterion are closed-form; :func:`cifilter._optimize.minimize_convex_interval`
+returns ``omega = 0`` (``f'(0) >= 0``) or ``omega = 1`` (``f'(1) <= 0``) exactly and otherwise
+brackets the root of ``f'`` and polishes it with safeguarded Newton steps. The sign
+conditions on ``f'`` are the certificate of global optimality. ``Psi`` is carried with a
+separate log-scale, so that the omega-dependent part of the bound, which decays like the
+closed loop's spectral radius to the power ``2 kappa``, is never lost to rounding against
+``P_c``: the optimum stays well defined at horizons where the criterion values themselves
+agree to machine precision.
+"""
+
+import numbers
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import numpy as np
+from scipy import linalg as sla
+
+from ._linalg import cho_inverse, cho_solve, cholesky, lower_inverse, symmetrize
+from ._optimize import minimize_convex_interval, minimize_convex_simplex
+from ._riccati import (
+    Terms,
+    as_matrix,
+    as_model,
+    broadcast_terms,
+    check_steps_available,
+    horizon_terms,
+    riccati,
+    update,
+)
+from ._validation import as_covariances, as_float_array, check_covariances, check_int
+from .ci import _criterion_value, _parse_criterion, ci_weights
+
+__all__ = [
+    "HorizonOmega",
+    "HorizonStudy",
+    "horizon_study",
+    "horizon_weights",
+    "optimal_omega",
+    "propagate_bound",
+    "steady_state_covariance",
+]
+
+
+# --------------------------------------------------------------------------- the weights
+def _informations(Ps, Gamma):
+    """S_i = P_i^-1 + Gamma, (..., N, n, n)."""
+    est = as_covariances(Ps, name="Ps")
+    informations = cho_inverse(est.L)
+    return est, symmetrize(informations + Gamma[..., None, :, :])
+
+
+def _bound(terms, S_inverse):
+    """P_c + exp(2 s) Psi S^-1 Psi^T."""
+    weight = np.exp(2.0 * terms.log_scale)[..., None, None]
+    return symmetrize(terms.P_c + weight * (terms.Psi @ S_inverse
+                                            @ np.swapaxes(terms.Psi, -1, -2)))
+
+
+def _pair_weights(S, terms, kind, W):
+    """Optimal omega for two estimates from the simultaneous diagonalisation of S_A, S_B."""
+    batch = S.shape[:-3]
+    n = S.shape[-1]
+    size = int(np.prod(batch, dtype=int))
+    L_inv = lower_inverse(cholesky(S[..., 1, :, :], "P_B^-1 + Gamma"))
+    mu, U = np.linalg.eigh(symmetrize(L_inv @ S[..., 0, :, :] @ np.swapaxes(L_inv, -1, -2)))
+    T = np.swapaxes(L_inv, -1, -2) @ U
+    V = terms.Psi @ T  # the bound is P_c + exp(2 s) V diag(d) V^T, d = 1 / (1 + omega a)
+    a = (mu - 1.0).reshape(size, n)
+    if kind == "det":
+        P_c = terms.P_c.reshape(size, n, n)
+        Vf = V.reshape(size, n, n)
+        weight = np.exp(2.0 * terms.log_scale).reshape(size)
+
+        def parts(omega, index):
+            d = 1.0 / (1.0 + omega[:, None] * a[index])
+            Z = P_c[index] + weight[index, None, None] * (
+                (Vf[index] * d[:, None, :]) @ np.swapaxes(Vf[index], -1, -2))
+            LZ = cholesky(symmetrize(Z), "propagated bound")
+            X = np.swapaxes(Vf[index], -1, -2) @ cho_solve(LZ, Vf[index])
+            return d, X
+
+        def derivatives(omega, index):
+            # f = log det Z; f' and f'' divided by exp(2 s) (their sign and root are kept).
+            d, X = parts(omega, index)
+            ad2 = a[index] * d**2
+            diagonal = np.diagonal(X, axis1=-2, axis2=-1)
+            g = -(diagonal * ad2).sum(axis=-1)
+            h = 2.0 * (diagonal * a[index] ** 2 * d**3).sum(axis=-1) - weight[index] * np.einsum(
+                "ik,ikl,il,ilk->i", ad2, X, ad2, X)
+            return g, h
+
+        everything = np.arange(size)
+        ends = [parts(np.full(size, w), everything) for w in (0.0, 1.0)]
+        scale = sum((np.diagonal(X, axis1=-2, axis2=-1) * d).sum(axis=-1) for d, X in ends)
+    else:
+        weight_matrix = np.eye(n) if kind == "trace" else W
+        c = np.einsum("...ik,...ij,...jk->...k", V, weight_matrix, V)
+        c = np.broadcast_to(c, batch + (n,)).reshape(size, n)
+
+        def derivatives(omega, index):
+            d = 1.0 / (1.0 + omega[:, None] * a[index])
+            term = c[index] * a[index] * d**2
+            return -term.sum(axis=-1), 2.0 * (term * a[index] * d).sum(axis=-1)
+
+        scale = (c * (1.0 + 1.0 / (1.0 + a))).sum(axis=-1)
+    omega, iterations, converged = minimize_convex_interval(derivatives, size, scale=scale)
+    weights = np.stack([omega, 1.0 - omega], axis=-1).reshape(batch + (2,))
+    return weights, iterations.reshape(batch), converged.reshape(batch)
+
+
+def _simplex_det_weights(S, terms):
+    """Optimal weights for N > 2 estimates and f = log det P_kappa(w), by active-set Newton.
+
+    With S(w) = sum_i w_i S_i, A_i = S^-1 S_i, C = exp(2 s) Psi^T Z^-1 Psi and
+    M_i = C A_i S^-1: g_i = -tr(M_i), H_ij = 2 tr(C A_i A_j S^-1) - tr(M_i M_j).
+    """
+    count = S.shape[-3]
+    weight = np.exp(2.0 * terms.log_scale)[..., None, None]
+
+    def fused(w):
+        L = cholesky(symmetrize(np.einsum("...k,...kij->...ij", w, S)), "fused information")
+        S_inv = cho_inverse(L)
+        LZ = cholesky(_bound(terms, S_inv), "propagated bound")
+        return S_inv, LZ
+
+    def objective(w):
+        return 2.0 * np.log(np.diagonal(fused(w)[1], axis1=-2, axis2=-1)).sum(axis=-1)
+
+    def evaluate(w):
+        S_inv, LZ = fused(w)
+        f = 2.0 * np.log(np.diagonal(LZ, axis1=-2, axis2=-1)).sum(axis=-1)
+        C = weight * (np.swapaxes(terms.Psi, -1, -2) @ cho_solve(LZ, terms.Psi))
+        A = S_inv[..., None, :, :] @ S
+        Mi = C[..., None, :, :] @ A @ S_inv[..., None, :, :]
+        g = -np.trace(Mi, axis1=-2, axis2=-1)
+        CA = C[..., None, :, :] @ A
+        H = 2.0 * np.einsum("...iab,...jbc,...ca->...ij", CA, A, S_inv)
+        H = H - np.einsum("...iab,...jba->...ij", Mi, Mi)
+        return f, g, symmetrize(H)
+
+    return minimize_convex_simplex(evaluate, objective, count, S.shape[:-3])
+
+
+def _zero_to_identity(W):
+    """Normalise weight matrices to max |entry| 1; an all-zero one (flat criterion) -> I."""
+    size = np.abs(W).max(axis=(-2, -1), keepdims=True)
+    return np.where(size > 0, W / np.where(size > 0, size, 1.0), np.eye(W.shape[-1]))
+
+
+def _optimal_weights(Ps, terms, kind, W):
+    """Criterion-optimal weights (..., N) for the bound at the horizon described by ``terms``."""
+    est, S = _informations(Ps, terms.Gamma)
+    batch = np.broadcast_shapes(S.shape[:-3], terms.P_c.shape[:-2], terms.log_scale.shape,
+                                () if W is None else W.shape[:-2])
+    S = np.broadcast_to(S, batch + S.shape[-3:])
+    terms = broadcast_terms(terms, batch)
+    if est.count == 2:
+        weights, iterations, converged = _pair_weights(S, terms, kind, W)
+        solver = "diagonalise"
+    elif kind == "det":
+        weights, iterations, converged = _simplex_det_weights(S, terms)
+        solver = "simplex"
+    else:
+        # trace(W P_kappa) = trace(W P_c) + exp(2 s) trace(Psi^T W Psi S(w)^-1), and
+        # S(w)^-1 is the CI bound of the matrices S_i^-1: a weighted-trace CI problem.
+        base = np.eye(est.dim) if kind == "trace" else W
+        weight = _zero_to_identity(symmetrize(np.swapaxes(terms.Psi, -1, -2) @ base
+                                              @ terms.Psi))
+        weights, info = ci_weights(cho_inverse(cholesky(S, "P_i^-1 + Gamma")), weight,
+                                   method="simplex")
+        iterations, converged, solver = info["iterations"], info["converged"], "simplex"
+    return weights, {"iterations": iterations, "converged": converged, "solver": solver}
+
+
+def _fused_bound(Ps, terms, weights):
+    _, S = _informations(Ps, terms.Gamma)
+    S_w = symmetrize(np.einsum("...k,...kij->...ij", weights, S))
+    return _bound(terms, cho_inverse(cholesky(S_w, "fused information")))
+
+
+# --------------------------------------------------------------------------- public API
+def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
+    """Carry a covariance bound through ``horizon`` Kalman filter steps.
+
+    Each step is the prediction (16), ``M = F P F^T + G Q G^T``, followed by the update with
+    the optimal gain (32) and the Joseph form (33), ``P = (I - K H) M (I - K H)^T + K R K^T``
+    with ``K = M H^T (H M H^T + R)^-1``. Applied to a CI bound, this is the bound of the
+    recursive approach of Ajgl et al. (2014); for a fixed omega it is also the bound of
+    their batch approach (Sec. III).
+
+    Parameters
+    ----------
+    P : array_like, shape (..., n, n)
+        The bound at the fusion time (symmetric positive definite).
+    F : array_like, shape (..., n, n)
+        State transition matrix.
+    Q : array_like, shape (..., m, m), or float
+        Process noise covariance (positive semidefinite; a number means ``Q * I``).
+    H : array_like, shape (..., p, n), sequence, or None
+        Measurement matrix used at every step; a list of ``horizon`` matrices (or None
+        entries for steps without a measurement), one per step; None for a prediction-only
+        horizon.
+    R : array_like, shape (..., p, p), float, sequence, or None
+        Measurement noise covariance (positive definite; a number means ``R * I``), a list
+        matching ``H``, or None when ``H`` is None.
+    horizon : int
+        Number of predict/update steps, ``kappa >= 0``.
+    G : array_like, shape (..., n, m), optional
+        Noise gain of eq. (1); default the identity (``Q`` is then n x n).
+    history : bool, optional
+        Also return the bounds after 0, 1, ..., ``horizon`` steps.
+
+    Returns
+    -------
+    ndarray, shape (..., n, n), or (..., horizon + 1, n, n) with ``history=True``
+        The propagated bound (symmetric); leading batch axes of all inputs broadcast.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, non-finite values, ``P`` or ``R`` not symmetric positive definite, ``Q``
+        not positive semidefinite, ``H`` given without ``R`` (or vice versa), a sequence of
+        the wrong length, a negative horizon.
+    TypeError
+        Non-numeric input or a non-integer horizon.
+
+    References
+    ----------
+    .. [1] J. Ajgl, M. Šimandl, M. Reinhardt, B. Noack and U. D. Hanebeck, "Covariance
+       intersection in state estimation of dynamical systems", FUSION 2014, eqs. (16),
+       (31)-(33).
+
+    Examples
+    --------
+    The static example (eqs. 22-28): one future measurement of filter A turns the CI bound
+    (24) into (28), ``diag(2 / (3 + omega), 2 / (3 - omega))``.
+
+    >>> import numpy as np
+    >>> from cifilter import covariance_intersection
+    >>> from cifilter.horizon import propagate_bound
+    >>> RA, RB = np.diag([1.0, 2.0]), np.diag([2.0, 1.0])
+    >>> fused = covariance_intersection([np.zeros(2)] * 2, [RA, RB], omega=0.5).P
+    >>> propagate_bound(fused, np.eye(2), 0.0, np.eye(2), RA, horizon=1).round(4).tolist()
+    [[0.5714, 0.0], [0.0, 0.8]]
+    """
+    horizon = check_int(horizon, "horizon", low=0)
+    P = as_float_array(P, "P")
+    if P.ndim < 2 or P.shape[-1] != P.shape[-2]:
+        raise ValueError(f"P must hold square matrices (..., n, n), got shape {P.shape}")
+    P, _ = check_covariances(P, "P")
+    model = as_model(F, Q, H, R, G, P.shape[-1], steps=horizon if horizon else None)
+    bounds = riccati(P, model, horizon)
+    if not history:
+        return bounds[-1]
+    batch = np.broadcast_shapes(*(b.shape[:-2] for b in bounds))
+    return np.stack([np.broadcast_to(b, batch + b.shape[-2:]) for b in bounds], axis=-3)
+
+
+@dataclass(frozen=True, repr=False)
+class HorizonOmega:
+    """The CI weight chosen for a horizon (result of :func:`optimal_omega`).
+
+    The parameters are also the attributes of the result.
+
+    Parameters
+    ----------
+    omega : ndarray, shape (...) or (..., N)
+        The weight of the first estimate (:func:`optimal_omega`) or the weights of all N
+        estimates (:func:`horizon_weights`).
+    value : ndarray, shape (...)
+        The criterion of the propagated bound at the horizon with these weights (the
+        determinant for ``"det"``).
+    P : ndarray, shape (..., n, n)
+        The propagated bound at the horizon (batch approach, eqs. 31-33).
+    info : dict
+        ``horizon``, ``criterion``, ``omega_recursive`` and ``value_recursive`` (the weights
+        of the recursive approach, optimal at horizon 0, and the criterion they give at the
+        horizon), ``iterations``, ``converged`` and ``solver``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.horizon import optimal_omega
+    >>> r = optimal_omega(np.diag([1.0, 2.0]), np.diag([2.0, 1.0]), np.eye(2), 0.0,
+    ...                   np.eye(2), np.diag([1.0, 2.0]), horizon=1)
+    >>> round(float(r.omega), 12), float(r.info["omega_recursive"])
+    (0.0, 0.5)
+    """
+
+    omega: np.ndarray
+    value: np.ndarray
+    P: np.ndarray
+    info: Any
+
+    def __repr__(self):
+        return (f"HorizonOmega(omega={np.array2string(np.asarray(self.omega), precision=4)}, "
+                f"value={np.array2string(np.asarray(self.value), precision=4)}, "
+                f"horizon={self.info.get('horizon')})")
+
+
+def _choose(Ps, model, horizon, criterion, n):
+    """Horizon-optimal weights, value and bound, and the recursive approach's for comparison."""
+    kind, W = _parse_criterion(criterion, n)
+    check_steps_available(model, horizon)
+    terms_list = horizon_terms(model, horizon, n, collect=sorted({0, horizon}))
+    start, terms = terms_list[0], terms_list[-1]
+    weights, info = _optimal_weights(Ps, terms, kind, W)
+    recursive, _ = _optimal_weights(Ps, start, kind, W)
+    P = _fused_bound(Ps, terms, weights)
+    P_recursive = _fused_bound(Ps, terms, recursive)
+    info.update(horizon=horizon, criterion=kind, omega_recursive=recursive,
+                value_recursive=_criterion_value(P_recursive, kind, W))
+    return weights, _criterion_value(P, kind, W), P, info
+
+
+def optimal_omega(PA, PB, F, Q, H, R, horizon, criterion="trace", G=None):
+    """The CI weight that minimises the bound ``horizon`` filter steps after the fusion.
+
+    The batch approach of Ajgl et al. (2014): the CI bound
+    ``P_0(omega) = (omega P_A^-1 + (1 - omega) P_B^-1)^-1`` is carried through ``horizon``
+    predict/update steps of the local filter (eqs. 16, 31-33) and ``omega`` minimises the
+    criterion of the result. ``horizon = 0`` is ordinary criterion-optimal CI.
+
+    Parameters
+    ----------
+    PA, PB : array_like, shape (..., n, n)
+        Covariances (bounds) of the two estimates; ``omega`` weighs ``PA``.
+    F, Q, H, R, G : array_like
+        The model of the filter that fuses and then filters on; see :func:`propagate_bound`
+        (``H`` and ``R`` may be None or per-step sequences).
+    horizon : int
+        The horizon ``kappa >= 0`` whose bound is minimised.
+    criterion : {"trace", "det"} or array_like, shape (n, n), optional
+        ``trace(P)``, ``det(P)`` or ``trace(W P)`` of the propagated bound.
+
+    Returns
+    -------
+    HorizonOmega
+        ``omega`` (...), the criterion ``value``, the propagated bound ``P`` and ``info``
+        (including the recursive approach's omega and value for comparison).
+
+    Raises
+    ------
+    ValueError
+        Bad covariances, model or criterion (see :func:`propagate_bound`); a propagated bound
+        that is singular under the ``"det"`` criterion.
+    TypeError
+        Non-numeric input or a non-integer horizon.
+
+    Notes
+    -----
+    The criterion is a convex function of omega at every horizon (proof in the module
+    docstring of :mod:`cifilter.horizon`): with ``P_c``, ``Psi``, ``Gamma`` from one Riccati
+    run started at ``P = 0``, ``P_kappa(omega) = P_c + Psi S(omega)^-1 Psi^T`` with ``S``
+    affine in omega, and the inverse is operator convex (trace criteria) and ``log det`` of
+    this form has a non-negative second derivative. So the global minimum on [0, 1] is found
+    without a grid: a simultaneous diagonalisation of ``S_A`` and ``S_B`` gives the
+    derivatives in closed form; the optimum is ``omega = 0`` exactly if ``f'(0) >= 0``,
+    ``omega = 1`` if ``f'(1) <= 0`` (boundary optima, as in the static example), and
+    otherwise the bracketed root of ``f'`` (safeguarded Newton, tolerance 1e-13). These sign
+    conditions certify global optimality. The test suite compares the result with dense
+    grids on random systems. Batched over leading axes of all inputs.
+
+    References
+    ----------
+    .. [1] J. Ajgl, M. Šimandl, M. Reinhardt, B. Noack and U. D. Hanebeck, "Covariance
+       intersection in state estimation of dynamical systems", FUSION 2014, Sec. III,
+       eqs. (13)-(16), (31)-(34), Figs. 3 and 6.
+
+    Examples
+    --------
+    The dynamical example (eqs. 29-30, 34): at the fusion time the determinant picks
+    ``omega = 0.6``; filter A, expecting its own measurements, almost ignores its estimate.
+
+    >>> import numpy as np
+    >>> from cifilter.horizon import optimal_omega
+    >>> F, Q = 0.95 * np.eye(2), np.array([[1.0, 0.95], [0.95, 1.0]])
+    >>> PA, PB = np.diag([10 / 11, 10.0]), np.diag([10.0, 30 / 13])
+    >>> HA = np.array([[1.0, 0.0]])
+    >>> round(float(optimal_omega(PA, PB, F, Q, HA, 1.0, 0, "det").omega), 6)
+    0.6
+    >>> round(float(optimal_omega(PA, PB, F, Q, HA, 1.0, 50, "det").omega), 4)
+    0.0418
+    """
+    horizon = check_int(horizon, "horizon", low=0)
+    Ps = _pair(PA, PB)
+    model = as_model(F, Q, H, R, G, Ps.shape[-1])
+    weights, value, P, info = _choose(Ps, model, horizon, criterion, Ps.shape[-1])
+    info["omega_recursive"] = info["omega_recursive"][..., 0]
+    return HorizonOmega(weights[..., 0], value, P, info)
+
+
+def _pair(PA, PB):
+    PA, PB = as_float_array(PA, "PA"), as_float_array(PB, "PB")
+    for name, M in (("PA", PA), ("PB", PB)):
+        if M.ndim < 2 or M.shape[-1] != M.shape[-2]:
+            raise ValueError(f"{name} must hold square matrices (..., n, n), got shape {M.shape}")
+    if PA.shape[-1] != PB.shape[-1]:
+        raise ValueError(f"PA is {PA.shape[-1]}x{PA.shape[-1]} but PB is "
+                         f"{PB.shape[-1]}x{PB.shape[-1]}")
+    batch = np.broadcast_shapes(PA.shape[:-2], PB.shape[:-2])
+    n = PA.shape[-1]
+    return np.stack([np.broadcast_to(PA, batch + (n, n)), np.broadcast_to(PB, batch + (n, n))],
+                    axis=-3)
+
+
+def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None):
+    """Horizon-optimal CI weights of N estimates (the generalisation of :func:`optimal_omega`).
+
+    The CI bound ``(sum_i w_i P_i^-1)^-1`` is carried through ``horizon`` filter steps and
+    the weights ``w`` on the simplex minimise the criterion of the result.
+
+    Parameters
+    ----------
+    Ps : sequence of array_like or array_like, shape (..., N, n, n)
+        Covariances of the N >= 2 estimates.
+    F, Q, H, R, G : array_like
+        The model of the filter that fuses; see :func:`propagate_bound`.
+    horizon : int
+        The horizon ``kappa >= 0``.
+    criterion : {"trace", "det"} or array_like, shape (n, n), optional
+        What to minimise.
+
+    Returns
+    -------
+    HorizonOmega
+        ``omega`` of shape (..., N), ``value``, ``P`` and ``info`` (``omega_recursive`` is
+        then (..., N) as well).
+
+    Raises
+    ------
+    ValueError
+        Fewer than two estimates, bad covariances, model or criterion.
+    TypeError
+        Non-numeric input or a non-integer horizon.
+
+    Notes
+    -----
+    With ``S_i = P_i^-1 + Gamma`` the bound is ``P_c + Psi (sum_i w_i S_i)^-1 Psi^T``, convex in
+    ``w`` (module docstring). For the trace criteria, ``trace(W P_kappa) = trace(W P_c) +
+    trace(Psi^T W Psi (sum_i w_i S_i)^-1)`` is a weighted-trace CI problem of the matrices
+    ``S_i^-1`` and is solved by :func:`cifilter.ci_weights`; for ``"det"`` an active-set Newton
+    method on the simplex uses the closed-form gradient and Hessian of ``log det P_kappa``.
+    N = 2 goes to the interval solver of :func:`optimal_omega`.
+
+    References
+    ----------
+    .. [1] J. Ajgl, M. Šimandl, M. Reinhardt, B. Noack and U. D. Hanebeck, "Covariance
+       intersection in state estimation of dynamical systems", FUSION 2014 (two estimates;
+       the N-estimate form is this package's generalisation).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.horizon import horizon_weights
+    >>> Ps = [np.diag([1.0, 2.0]), np.diag([2.0, 1.0]), np.diag([1.5, 1.5])]
+    >>> r = horizon_weights(Ps, np.eye(2), 0.0, np.eye(2), np.diag([1.0, 2.0]), horizon=1)
+    >>> r.omega.round(4).tolist()
+    [0.0, 1.0, 0.0]
+    """
+    horizon = check_int(horizon, "horizon", low=0)
+    est = as_covariances(Ps, name="Ps")
+    model = as_model(F, Q, H, R, G, est.dim)
+    weights, value, P, info = _choose(est.P, model, horizon, criterion, est.dim)
+    return HorizonOmega(weights, value, P, info)
+
+
+def steady_state_covariance(F, Q, H, R, G=None):
+    """Steady-state posterior covariance of the local Kalman filter.
+
+    The prior ``M`` solves the discrete algebraic Riccati equation
+    ``M = F M F^T - F M H^T (H M H^T + R)^-1 H M F^T + G Q G^T``
+    (:func:`scipy.linalg.solve_discrete_are`); the posterior is
+    ``M - M H^T (H M H^T + R)^-1 H M``, the limit of eq. (33). Without measurements
+    (``H = R = None``) it is the solution of the Lyapunov equation ``M = F M F^T + G Q G^T``.
+
+    Parameters
+    ----------
+    F : array_like, shape (..., n, n)
+        State transition matrix.
+    Q : array_like, shape (..., m, m), or float
+        Process noise covariance.
+    H : array_like, shape (..., p, n), or None
+        Measurement matrix.
+    R : array_like, shape (..., p, p), float, or None
+        Measurement noise covariance.
+    G : array_like, shape (..., n, m), optional
+        Noise gain (default identity).
+
+    Returns
+    -------
+    ndarray, shape (..., n, n)
+        The steady posterior covariance (symmetric).
+
+    Raises
+    ------
+    ValueError
+        Bad shapes or values; no stabilising solution (for example an undetectable pair
+        ``(F, H)``, or ``F`` not stable without measurements).
+    TypeError
+        Non-numeric input.
+
+    Notes
+    -----
+    SciPy's solvers are not vectorised, so batched models are solved one at a time.
+
+    References
+    ----------
+    .. [1] J. Ajgl, M. Šimandl, M. Reinhardt, B. Noack and U. D. Hanebeck, "Covariance
+       intersection in state estimation of dynamical systems", FUSION 2014, eq. (35).
+
+    Examples
+    --------
+    Eq. (35), filter A of the dynamical example:
+
+    >>> import numpy as np
+    >>> from cifilter.horizon import steady_state_covariance
+    >>> F, Q = 0.95 * np.eye(2), np.array([[1.0, 0.95], [0.95, 1.0]])
+    >>> steady_state_covariance(F, Q, np.array([[1.0, 0.0]]), 1.0).round(4).tolist()
+    [[0.6076, 0.5772], [0.5772, 1.5483]]
+    """
+    F0 = as_matrix(F, "F")
+    n = F0.shape[-1]
+    model = as_model(F0, Q, H, R, G, n)
+    if model.steps is not None:
+        raise ValueError("steady_state_covariance needs one H and R, not a sequence per step")
+    parts = [model.F, model.noise] + ([] if model.constant is None else list(model.constant))
+    batch = np.broadcast_shapes(*(p.shape[:-2] for p in parts))
+    parts = [np.broadcast_to(p, batch + p.shape[-2:]) for p in parts]
+    out = np.empty(batch + (n, n))
+    for index in np.ndindex(*batch):  # SciPy's Riccati and Lyapunov solvers take one model
+        F_i, noise_i = parts[0][index], parts[1][index]
+        if model.constant is None:
+            if np.max(np.abs(np.linalg.eigvals(F_i))) >= 1.0:
+                raise ValueError("without measurements the steady state exists only for a "
+                                 "stable F (spectral radius < 1)")
+            out[index] = sla.solve_discrete_lyapunov(F_i, noise_i)
+            continue
+        H_i, R_i = parts[2][index], parts[3][index]
+        try:
+            M = sla.solve_discrete_are(F_i.T, H_i.T, noise_i, R_i)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            raise ValueError(f"the Riccati equation has no stabilising solution ({exc}); "
+                             "is (F, H) detectable?") from None
+        out[index] = update(symmetrize(M), (H_i, R_i))[0]
+    return symmetrize(out)
+
+
+@dataclass(frozen=True, repr=False)
+class HorizonStudy:
+    """Batch versus recursive CI over a range of horizons (result of :func:`horizon_study`).
+
+    The parameters are also the attributes of the result. Trailing axes run over the
+    horizons; leading axes are the batch of fusion problems.
+
+    Parameters
+    ----------
+    horizons : ndarray, shape (K,)
+        The horizons ``kappa``.
+    omega : ndarray, shape (..., K)
+        The batch-optimal omega for each horizon.
+    batch : ndarray, shape (..., K)
+        The criterion of the propagated bound with the horizon-optimal omega.
+    recursive : ndarray, shape (..., K)
+        The criterion with omega fixed at its horizon-0 optimum (the recursive approach).
+    omega_recursive : ndarray, shape (...)
+        The omega of the recursive approach (criterion-optimal CI at the fusion time).
+    criterion : str
+        ``"trace"``, ``"det"`` or ``"weighted-trace"``.
+    P_batch, P_recursive : ndarray, shape (..., K, n, n)
+        The propagated bounds of the two approaches.
+    steady_P : ndarray, shape (..., n, n), or None
+        The local filter's steady posterior covariance (discrete algebraic Riccati
+        equation), the limit of both bounds; None for per-step measurement models.
+    steady_value : ndarray, shape (...), or None
+        Its criterion (the limit of ``batch`` and ``recursive``).
+    omega_limit : ndarray, shape (...)
+        The limit of the batch-optimal omega as the horizon grows (NaN if it has none, for
+        instance when the closed loop's dominant mode rotates, or for per-step models).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.horizon import horizon_study
+    >>> F, Q = 0.95 * np.eye(2), np.array([[1.0, 0.95], [0.95, 1.0]])
+    >>> s = horizon_study(np.diag([10 / 11, 10.0]), np.diag([10.0, 30 / 13]), F, Q,
+    ...                   np.array([[1.0, 0.0]]), 1.0, horizons=10, criterion="det")
+    >>> bool(np.all(s.batch <= s.recursive)), round(float(s.omega_limit), 3)
+    (True, 0.042)
+    """
+
+    horizons: np.ndarray
+    omega: np.ndarray
+    batch: np.ndarray
+    recursive: np.ndarray
+    omega_recursive: np.ndarray
+    criterion: str
+    P_batch: np.ndarray
+    P_recursive: np.ndarray
+    steady_P: Optional[np.ndarray]
+    steady_value: Optional[np.ndarray]
+    omega_limit: np.ndarray
+
+    def __repr__(self):
+        return (f"HorizonStudy(criterion={self.criterion!r}, horizons {self.horizons[0]}.."
+                f"{self.horizons[-1]}, batch shape={np.shape(self.omega_recursive)})")
+
+    def plot(self, axes=None, label=None):
+        """Draw omega and the two criteria against the horizon (as Figs. 3 and 4).
+
+        Parameters
+        ----------
+        axes : sequence of two matplotlib.axes.Axes, optional
+            Where to draw omega and the criterion; new axes in a new figure by default.
+        label : str, optional
+            Prefix of the legend labels (for instance the filter's name).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure of the axes.
+
+        Raises
+        ------
+        ValueError
+            If the study is batched (draw one problem: index the inputs first) or ``axes``
+            does not hold two axes.
+
+        Examples
+        --------
+        >>> import matplotlib
+        >>> matplotlib.use("Agg")
+        >>> import matplotlib.pyplot as plt
+        >>> import numpy as np
+        >>> from cifilter.horizon import horizon_study
+        >>> s = horizon_study(np.eye(2), 2 * np.eye(2), 0.9 * np.eye(2), np.eye(2),
+        ...                   np.array([[1.0, 0.0]]), 1.0, horizons=5)
+        >>> fig = s.plot(label="A")
+        >>> plt.close(fig)
+        """
+        if np.ndim(self.omega_recursive) != 0:
+            raise ValueError("plot draws one fusion problem; this study is batched with shape "
+                             f"{np.shape(self.omega_recursive)}")
+        import matplotlib.pyplot as plt
+
+        if axes is None:
+            _, axes = plt.subplots(1, 2, figsize=(9, 3.5), layout="constrained")
+        if len(axes) != 2:
+            raise ValueError(f"axes must hold two matplotlib axes, got {len(axes)}")
+        prefix = f"{label}: " if label else ""
+        ax_omega, ax_value = axes
+        ax_omega.plot(self.horizons, self.omega, "o-", ms=3, label=f"{prefix}batch (optimal)")
+        ax_omega.axhline(float(self.omega_recursive), ls="--", color="gray",
+                         label=f"{prefix}recursive (fixed at 0)")
+        if np.isfinite(self.omega_limit):
+            ax_omega.axhline(float(self.omega_limit), ls=":", color="k",
+                             label=f"{prefix}limit")
+        ax_omega.set(xlabel="horizon $\\kappa$", ylabel="$\\omega$", ylim=(-0.02, 1.02))
+        ax_value.plot(self.horizons, self.batch, "-", label=f"{prefix}batch")
+        ax_value.plot(self.horizons, self.recursive, "--", label=f"{prefix}recursive")
+        if self.steady_value is not None:
+            ax_value.axhline(float(self.steady_value), ls=":", color="k",
+                             label=f"{prefix}steady state")
+        ax_value.set(xlabel="horizon $\\kappa$", ylabel=f"{self.criterion} of the bound")
+        for ax in axes:
+            ax.legend(fontsize="small")
+        return ax_omega.figure
+
+
+def _as_horizons(horizons):
+    if isinstance(horizons, numbers.Integral) and not isinstance(horizons, bool):
+        return np.arange(check_int(horizons, "horizons", low=0) + 1)
+    values = np.asarray(horizons)
+    if values.ndim != 1 or values.size == 0 or not np.issubdtype(values.dtype, np.integer):
+        raise ValueError("horizons must be a non-negative integer K (meaning 0..K) or a "
+                         f"non-empty 1-D sequence of integers, got {horizons!r}")
+    if np.any(values < 0):
+        raise ValueError(f"horizons must be >= 0, got {values.min()}")
+    return values.astype(int)
+
+
+def _stack_terms(terms_list):
+    batch = np.broadcast_shapes(*(t.log_scale.shape for t in terms_list),
+                                *(t.P_c.shape[:-2] for t in terms_list))
+    terms_list = [broadcast_terms(t, batch) for t in terms_list]
+    return Terms(*(np.stack(parts, axis=len(batch)) for parts in zip(*terms_list)))
+
+
+# Horizons at which the limit of omega is looked for; converged when the last two agree.
+_LIMIT_HORIZONS = (200, 400)
+
+
+def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, limit=True):
+    """Batch versus recursive Covariance Intersection for a range of horizons.
+
+    For each horizon ``kappa``, the batch approach of Ajgl et al. (2014) chooses omega for the
+    bound after ``kappa`` filter steps (:func:`optimal_omega`); the recursive approach fixes
+    omega at its ``kappa = 0`` optimum and filters on (eqs. 31-33). The study also gives the
+    steady-state limit of both bounds (the local filter's discrete algebraic Riccati
+    equation) and the limit of the batch-optimal omega.
+
+    Parameters
+    ----------
+    PA, PB : array_like, shape (..., n, n)
+        Covariances (bounds) of the two estimates; omega weighs ``PA``.
+    F, Q, H, R, G : array_like
+        The model of the fusing filter (see :func:`propagate_bound`); per-step sequences of
+        ``H`` and ``R`` need one entry per step up to the largest horizon.
+    horizons : int or sequence of int
+        ``K`` for the horizons 0, 1, ..., K, or the horizons themselves.
+    criterion : {"trace", "det"} or array_like, shape (n, n), optional
+        What to minimise.
+    limit : bool, optional
+        Compute ``omega_limit`` (default True; it costs a 400-step recursion).
+
+    Returns
+    -------
+    HorizonStudy
+        Arrays ``horizons``, ``omega``, ``batch``, ``recursive`` (and the bounds, the steady
+        state and the limit of omega) and a ``plot()`` method.
+
+    Raises
+    ------
+    ValueError
+        Bad covariances, model, criterion or horizons.
+    TypeError
+        Non-numeric input.
+
+    Notes
+    -----
+    One Riccati run from ``P = 0`` gives the terms of ``P_kappa(omega) = P_c + Psi S(omega)^-1
+    Psi^T`` at every horizon (module docstring), and the convex problems of all horizons and
+    batch items are solved together. For a fixed omega the batch and the recursive bounds
+    coincide (Sec. III of the paper), so ``batch <= recursive`` at every horizon, with
+    equality at ``kappa = 0``. ``omega_limit`` is the optimum at horizons 200 and 400 (with
+    the transition carried on a log scale, so nothing underflows) when the two agree to
+    1e-8. ``steady_P`` is None when the Riccati equation has no stabilising solution.
+
+    References
+    ----------
+    .. [1] J. Ajgl, M. Šimandl, M. Reinhardt, B. Noack and U. D. Hanebeck, "Covariance
+       intersection in state estimation of dynamical systems", FUSION 2014, Sec. IV.B,
+       eqs. (29)-(35), Figs. 3, 4, 6 and 7.
+
+    Examples
+    --------
+    Fig. 3, filter B with the trace criterion:
+
+    >>> import numpy as np
+    >>> from cifilter.horizon import horizon_study
+    >>> F, Q = 0.95 * np.eye(2), np.array([[1.0, 0.95], [0.95, 1.0]])
+    >>> s = horizon_study(np.diag([10 / 11, 10.0]), np.diag([10.0, 30 / 13]), F, Q,
+    ...                   np.array([[0.0, 1.0]]), 3.0, horizons=[0, 1, 50])
+    >>> s.omega.round(3).tolist(), round(float(s.omega_limit), 3)
+    ([0.412, 0.779, 0.853], 0.853)
+    """
+    horizons = _as_horizons(horizons)
+    Ps = _pair(PA, PB)
+    n = Ps.shape[-1]
+    kind, W = _parse_criterion(criterion, n)
+    model = as_model(F, Q, H, R, G, n)
+    check_steps_available(model, int(horizons.max()))
+    distinct = sorted(set(horizons.tolist()) | {0})
+    limit = bool(limit) and model.steps is None
+    limit_at = [h for h in _LIMIT_HORIZONS if h not in distinct] if limit else []
+    everything = sorted(set(distinct) | set(limit_at))
+    collected = dict(zip(everything, horizon_terms(model, everything[-1], n,
+                                                     collect=everything)))
+    terms = _stack_terms([collected[h] for h in horizons])
+    Ps_k = Ps[..., None, :, :, :]
+    weights, _ = _optimal_weights(Ps_k, terms, kind, W)
+    recursive_w, _ = _optimal_weights(Ps, collected[0], kind, W)
+    P_batch = _fused_bound(Ps_k, terms, weights)
+    P_recursive = _fused_bound(Ps_k, terms, recursive_w[..., None, :])
+    batch_shape = P_batch.shape[:-3]
+    omega_limit = np.full(batch_shape, np.nan)
+    if limit:
+        tail = _stack_terms([collected[h] for h in _LIMIT_HORIZONS])
+        w_tail, _ = _optimal_weights(Ps_k, tail, kind, W)
+        first, last = w_tail[..., 0, 0], w_tail[..., 1, 0]
+        omega_limit = np.where(np.abs(first - last) < 1e-8, last, np.nan)
+    steady_P = steady_value = None
+    if model.steps is None:
+        try:
+            steady_P = steady_state_covariance(model.F, model.noise,
+                                               *(model.constant or (None, None)))
+        except ValueError:  # no stabilising solution: the bounds have no finite limit
+            steady_P = None
+        else:
+            steady_value = _criterion_value(steady_P, kind, W)
+    omega_recursive = recursive_w[..., 0]
+    return HorizonStudy(
+        horizons=horizons,
+        omega=weights[..., 0],
+        batch=_criterion_value(P_batch, kind, W),
+        recursive=_criterion_value(P_recursive, kind, W),
+        omega_recursive=np.broadcast_to(omega_recursive, batch_shape).copy(),
+        criterion=kind,
+        P_batch=P_batch,
+        P_recursive=P_recursive,
+        steady_P=steady_P,
+        steady_value=steady_value,
+        omega_limit=omega_limit,
+    )

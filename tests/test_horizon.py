@@ -1,0 +1,605 @@
+"""Horizon-aware CI (Ajgl et al. 2014): paper values, batch vs recursive, global optimality,
+N estimates, the filters' ``fuse(horizon=)``, conventions and bad input."""
+
+import copy
+
+import filterpy.kalman as fk
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from strategies import assert_psd, fused_error_covariance, joint_covariances, spd_matrices
+
+from cifilter import ExtendedKalmanFilter, KalmanFilter, ci_weights, covariance_intersection
+from cifilter.horizon import (
+    horizon_study,
+    horizon_weights,
+    optimal_omega,
+    propagate_bound,
+    steady_state_covariance,
+)
+
+# The dynamical example, eqs. (29)-(30).
+F_DYN = 0.95 * np.eye(2)
+Q_DYN = np.array([[1.0, 0.95], [0.95, 1.0]])
+H_A, R_A = np.array([[1.0, 0.0]]), 1.0
+H_B, R_B = np.array([[0.0, 1.0]]), 3.0
+FILTERS = {"A": (H_A, R_A), "B": (H_B, R_B)}
+# The static example, eqs. (22)-(23).
+RA_STATIC, RB_STATIC = np.diag([1.0, 2.0]), np.diag([2.0, 1.0])
+
+
+def local_bounds_at_zero():
+    """MMSE estimates at k = 0 from P_0 = 10 I and one local measurement (eqs. 29-30)."""
+    P0_inv = np.eye(2) / 10.0
+    PA = np.linalg.inv(P0_inv + H_A.T @ H_A / R_A)
+    PB = np.linalg.inv(P0_inv + H_B.T @ H_B / R_B)
+    return PA, PB
+
+
+def ci_bound(PA, PB, omega):
+    return np.linalg.inv(omega * np.linalg.inv(PA) + (1 - omega) * np.linalg.inv(PB))
+
+
+def criterion_value(P, criterion):
+    if isinstance(criterion, np.ndarray):
+        return np.einsum("ij,...ji->...", criterion, P)
+    if criterion == "det":
+        return np.linalg.det(P)
+    if criterion == "trace":
+        return np.trace(P, axis1=-2, axis2=-1)
+    return np.einsum("ij,...ji->...", criterion, P)
+
+
+def random_system(seed, n=3, p=2):
+    g = np.random.default_rng(seed)
+    A = g.standard_normal((n, n))
+    F = A / max(1.0, 0.8 * np.abs(np.linalg.eigvals(A)).max()) * g.choice([0.7, 1.0, 1.2])
+    B = g.standard_normal((n, n))
+    Q = g.choice([0.01, 1.0]) * B @ B.T + 1e-3 * np.eye(n)
+    H = g.standard_normal((p, n))
+    C = g.standard_normal((p, p))
+    R = g.choice([0.1, 1.0, 10.0]) * C @ C.T + 0.1 * np.eye(p)
+    Ps = []
+    for _ in range(2):
+        D = g.standard_normal((n, n)) * g.choice([0.3, 1.0, 3.0])
+        Ps.append(D @ D.T + 0.05 * np.eye(n))
+    return F, Q, H, R, Ps[0], Ps[1]
+
+
+# ----------------------------------------------------------------- static example (IV.A)
+def test_static_eq_24_without_future_data_omega_is_one_half():
+    for omega in (0.0, 0.25, 0.5, 1.0):
+        r = covariance_intersection([np.zeros(2)] * 2, [RA_STATIC, RB_STATIC], omega=omega)
+        np.testing.assert_allclose(r.P, np.diag([2 / (1 + omega), 2 / (2 - omega)]), atol=1e-14)
+        np.testing.assert_allclose(r.gains[0], np.diag([2 * omega / (1 + omega),
+                                                        omega / (2 - omega)]), atol=1e-14)
+    for criterion in ("det", "trace"):
+        r = optimal_omega(RA_STATIC, RB_STATIC, np.eye(2), 0.0, np.eye(2), RA_STATIC, 0,
+                          criterion)
+        assert float(r.omega) == pytest.approx(0.5, abs=1e-12)
+
+
+@pytest.mark.parametrize("omega", [0.0, 0.2, 0.5, 0.9, 1.0])
+def test_static_eqs_27_28_one_future_measurement_of_filter_A(omega):
+    fused = covariance_intersection([np.zeros(2)] * 2, [RA_STATIC, RB_STATIC], omega=omega)
+    P1 = propagate_bound(fused.P, np.eye(2), 0.0, np.eye(2), RA_STATIC, 1)
+    np.testing.assert_allclose(P1, np.diag([2 / (3 + omega), 2 / (3 - omega)]), atol=1e-14)
+    # eq. (27): the weights of Z_0^A, Z_0^B and Z_1^A in the batch estimator equal those of
+    # the recursive estimator with the same omega (CI, then a Kalman update, eq. 31)
+    K1 = fused.P @ np.linalg.inv(fused.P + RA_STATIC)
+    weights = np.hstack([(np.eye(2) - K1) @ fused.gains[0], (np.eye(2) - K1) @ fused.gains[1],
+                         K1])
+    w = omega
+    expected = np.array([
+        [2 * w / (3 + w), 0, (1 - w) / (3 + w), 0, 2 / (3 + w), 0],
+        [0, w / (3 - w), 0, 2 * (1 - w) / (3 - w), 0, 1 / (3 - w)],
+    ])
+    np.testing.assert_allclose(weights, expected, atol=1e-14)
+
+
+@pytest.mark.parametrize("criterion", ["det", "trace"])
+def test_static_future_measurement_gives_omega_0_in_A_and_1_in_B(criterion):
+    args = (RA_STATIC, RB_STATIC, np.eye(2), 0.0, np.eye(2))
+    in_A = optimal_omega(*args, RA_STATIC, 1, criterion)
+    in_B = optimal_omega(*args, RB_STATIC, 1, criterion)
+    # f'(0) = 0 exactly for both criteria (f is even in omega around 0), so rounding
+    # may leave omega a few ulps inside the interval
+    assert float(in_A.omega) == pytest.approx(0.0, abs=1e-12)
+    assert float(in_B.omega) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(in_A.P, np.diag([2 / 3, 2 / 3]), atol=1e-12)
+    assert float(in_A.info["omega_recursive"]) == pytest.approx(0.5, abs=1e-12)
+    assert in_A.value < in_A.info["value_recursive"]
+
+
+# ----------------------------------------------------------------- dynamical example (IV.B)
+def test_local_bounds_at_zero_give_eq_34():
+    PA, PB = local_bounds_at_zero()
+    np.testing.assert_allclose(PA, np.diag([10 / 11, 10.0]), rtol=1e-14)
+    np.testing.assert_allclose(PB, np.diag([10.0, 30 / 13]), rtol=1e-14)
+    for omega in (0.1, 0.6):
+        np.testing.assert_allclose(ci_bound(PA, PB, omega),
+                                   np.diag([10 / (1 + 10 * omega), 30 / (13 - 10 * omega)]),
+                                   rtol=1e-13)
+
+
+def test_fusion_at_zero_det_0_6_and_trace_0_41():
+    PA, PB = local_bounds_at_zero()
+    for H, R in FILTERS.values():
+        det = optimal_omega(PA, PB, F_DYN, Q_DYN, H, R, 0, "det")
+        trace = optimal_omega(PA, PB, F_DYN, Q_DYN, H, R, 0, "trace")
+        assert float(det.omega) == pytest.approx(0.6, abs=1e-12)
+        # paper: "about 0.41"; hand derivation in tests/test_ci.py
+        assert float(trace.omega) == pytest.approx((13 - np.sqrt(3)) / (10 * (1 + np.sqrt(3))),
+                                                   abs=1e-12)
+
+
+@pytest.mark.parametrize("criterion", ["det", "trace"])
+def test_fig_3_omega_approaches_0_04_in_A_and_0_85_in_B(criterion):
+    PA, PB = local_bounds_at_zero()
+    limits = {}
+    for name, (H, R) in FILTERS.items():
+        s = horizon_study(PA, PB, F_DYN, Q_DYN, H, R, 40, criterion)
+        limits[name] = float(s.omega_limit)
+        assert s.omega[0] == pytest.approx(0.6 if criterion == "det" else 0.41244, abs=1e-5)
+        assert s.omega[-1] == pytest.approx(s.omega_limit, abs=1e-6)
+    # the paper: omega ~ 0.04 (A) and ~ 0.85 (B); computed 0.04177 and 0.85317
+    assert limits["A"] == pytest.approx(0.04, abs=0.005)
+    assert limits["B"] == pytest.approx(0.85, abs=0.005)
+
+
+def test_fig_3_limits_are_the_same_for_det_and_trace():
+    PA, PB = local_bounds_at_zero()
+    for H, R in FILTERS.values():
+        det = horizon_study(PA, PB, F_DYN, Q_DYN, H, R, 5, "det").omega_limit
+        trace = horizon_study(PA, PB, F_DYN, Q_DYN, H, R, 5, "trace").omega_limit
+        assert float(det) == pytest.approx(float(trace), abs=1e-8)
+
+
+def test_fig_3_shape_det_in_A_falls_monotonically_and_B_rises():
+    PA, PB = local_bounds_at_zero()
+    a = horizon_study(PA, PB, F_DYN, Q_DYN, H_A, R_A, 30, "det").omega
+    b = horizon_study(PA, PB, F_DYN, Q_DYN, H_B, R_B, 30, "det").omega
+    assert np.all(np.diff(a) <= 1e-12) and a[-1] < 0.05
+    assert np.all(np.diff(b) >= -1e-12) and b[-1] > 0.85
+
+
+@pytest.mark.parametrize("criterion", ["det", "trace"])
+def test_fig_4_batch_below_recursive_and_both_reach_the_steady_state(criterion):
+    PA, PB = local_bounds_at_zero()
+    for H, R in FILTERS.values():
+        s = horizon_study(PA, PB, F_DYN, Q_DYN, H, R, 200, criterion)
+        assert s.batch[0] == pytest.approx(s.recursive[0], rel=1e-13)
+        assert np.all(s.batch <= s.recursive * (1 + 1e-12))
+        assert np.any(s.batch[1:] < s.recursive[1:] * (1 - 1e-3))  # a real gain somewhere
+        gap = s.recursive - s.batch
+        assert gap[-1] < 1e-6 * s.steady_value  # the influence of omega vanishes
+        assert s.batch[-1] == pytest.approx(s.steady_value, rel=1e-6)
+        np.testing.assert_allclose(s.P_batch[-1], s.steady_P, atol=1e-6)
+
+
+def test_eq_35_steady_state_matrices():
+    PA = steady_state_covariance(F_DYN, Q_DYN, H_A, R_A)
+    PB = steady_state_covariance(F_DYN, Q_DYN, H_B, R_B)
+    np.testing.assert_allclose(PA, [[0.6076, 0.5772], [0.5772, 1.5483]], atol=5e-5)
+    np.testing.assert_allclose(PB, [[2.1216, 1.1806], [1.1806, 1.2427]], atol=5e-5)
+    for P, (H, R) in ((PA, FILTERS["A"]), (PB, FILTERS["B"])):
+        np.testing.assert_allclose(propagate_bound(P, F_DYN, Q_DYN, H, R, 1), P, atol=1e-12)
+
+
+def test_steady_state_fusion_omegas_and_fig_6_limits():
+    PA = steady_state_covariance(F_DYN, Q_DYN, H_A, R_A)
+    PB = steady_state_covariance(F_DYN, Q_DYN, H_B, R_B)
+    det = optimal_omega(PA, PB, F_DYN, Q_DYN, H_A, R_A, 0, "det")
+    trace = optimal_omega(PA, PB, F_DYN, Q_DYN, H_A, R_A, 0, "trace")
+    assert float(det.omega) == pytest.approx(0.88, abs=0.005)  # computed 0.8841
+    assert float(trace.omega) == pytest.approx(0.69, abs=0.006)  # computed 0.6949
+    for criterion in ("det", "trace"):
+        a = horizon_study(PA, PB, F_DYN, Q_DYN, H_A, R_A, 5, criterion).omega_limit
+        b = horizon_study(PA, PB, F_DYN, Q_DYN, H_B, R_B, 5, criterion).omega_limit
+        assert float(a) == pytest.approx(0.14, abs=0.005)  # computed 0.1370
+        assert float(b) == pytest.approx(0.69, abs=0.005)  # computed 0.6927
+
+
+# ----------------------------------------------------------------- Sec. III: batch vs recursive
+def explicit_batch_bound(PA, PB, omega, F, Q, H, R, horizon):
+    """Generalised least squares on [x_0, w_0, ..., w_{kappa-1}] with the bound (13).
+
+    The best linear unbiased estimator of x_kappa from the two estimates (covariances
+    P_A / omega, P_B / (1 - omega)), the process noises (prior covariance Q) and the
+    measurements z_j = H x_j + v_j; returns its error covariance L J^-1 L^T.
+    """
+    n = F.shape[0]
+    dim = n * (1 + horizon)
+    rows, covariances = [], []
+
+    def state(j):  # x_j = F^j x_0 + sum_{i<j} F^{j-1-i} w_i, as a row block over theta
+        M = np.zeros((n, dim))
+        M[:, :n] = np.linalg.matrix_power(F, j)
+        for i in range(j):
+            M[:, n * (1 + i):n * (2 + i)] = np.linalg.matrix_power(F, j - 1 - i)
+        return M
+
+    rows += [state(0), state(0)]
+    covariances += [PA / omega, PB / (1 - omega)]
+    for i in range(horizon):
+        M = np.zeros((n, dim))
+        M[:, n * (1 + i):n * (2 + i)] = np.eye(n)
+        rows.append(M)
+        covariances.append(Q)
+    for j in range(1, horizon + 1):
+        rows.append(H @ state(j))
+        covariances.append(R)
+    A = np.vstack(rows)
+    sizes = [c.shape[0] for c in covariances]
+    Sigma_inv = np.zeros((sum(sizes), sum(sizes)))
+    offset = 0
+    for c in covariances:
+        Sigma_inv[offset:offset + c.shape[0], offset:offset + c.shape[0]] = np.linalg.inv(c)
+        offset += c.shape[0]
+    J = A.T @ Sigma_inv @ A
+    L = state(horizon)
+    return L @ np.linalg.solve(J, L.T)
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("horizon", [1, 3])
+def test_for_fixed_omega_batch_and_recursive_bounds_coincide(seed, horizon):
+    F, Q, H, R, PA, PB = random_system(seed)
+    for omega in (0.1, 0.5, 0.85):
+        recursive = propagate_bound(ci_bound(PA, PB, omega), F, Q, H, R, horizon)
+        batch = explicit_batch_bound(PA, PB, omega, F, Q, H, R, horizon)
+        np.testing.assert_allclose(recursive, batch, rtol=1e-8, atol=1e-10)
+
+
+@st.composite
+def systems(draw, n=2):
+    g = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    F = g.standard_normal((n, n)) * draw(st.sampled_from([0.3, 1.0]))
+    Q = draw(spd_matrices(n, min_eigenvalue=0.01, max_eigenvalue=5.0))
+    H = g.standard_normal((draw(st.integers(1, n)), n))
+    R = np.eye(H.shape[0]) * draw(st.sampled_from([0.1, 1.0, 10.0]))
+    PA, PB = draw(spd_matrices(n)), draw(spd_matrices(n))
+    return F, Q, H, R, PA, PB
+
+
+@given(systems(), st.sampled_from(["det", "trace", "weighted"]))
+def test_batch_optimum_never_above_recursive_at_any_horizon(system, criterion):
+    F, Q, H, R, PA, PB = system
+    crit = np.diag([2.0, 0.5]) if criterion == "weighted" else criterion
+    s = horizon_study(PA, PB, F, Q, H, R, 6, crit, limit=False)
+    assert np.all(s.batch <= s.recursive * (1 + 1e-9) + 1e-300)
+    assert s.batch[0] == pytest.approx(s.recursive[0], rel=1e-9)
+    # the recursive bound is the fixed-omega propagation (eqs. 31-33)
+    fixed = ci_bound(PA, PB, float(s.omega_recursive))
+    history = propagate_bound(fixed, F, Q, H, R, 6, history=True)
+    np.testing.assert_allclose(s.P_recursive, history, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(s.recursive, criterion_value(history, crit), rtol=1e-7)
+
+
+@given(systems(), st.sampled_from(["det", "trace", "weighted"]), st.integers(1, 5))
+def test_optimal_omega_is_global_against_a_dense_grid(system, criterion, horizon):
+    F, Q, H, R, PA, PB = system
+    crit = np.diag([1.0, 3.0]) if criterion == "weighted" else criterion
+    r = optimal_omega(PA, PB, F, Q, H, R, horizon, crit)
+    grid = np.linspace(0.0, 1.0, 2001)
+    values = criterion_value(propagate_bound(ci_bound(PA, PB, grid[:, None, None]), F, Q, H, R,
+                                             horizon), crit)
+    assert r.value <= values.min() * (1 + 1e-10)
+    assert r.info["converged"]
+    np.testing.assert_allclose(r.P, propagate_bound(ci_bound(PA, PB, float(r.omega)), F, Q, H,
+                                                    R, horizon), rtol=1e-8, atol=1e-10)
+    assert r.value == pytest.approx(criterion_value(r.P, crit), rel=1e-12)
+
+
+@given(systems(), st.sampled_from(["det", "trace"]), st.integers(1, 6))
+def test_criterion_is_convex_in_omega(system, criterion, horizon):
+    """The issue expected non-convexity for kappa >= 1; the module docstring proves
+    convexity. Second differences on a fine grid must be non-negative."""
+    F, Q, H, R, PA, PB = system
+    grid = np.linspace(0.0, 1.0, 401)
+    P = propagate_bound(ci_bound(PA, PB, grid[:, None, None]), F, Q, H, R, horizon)
+    values = np.log(np.linalg.det(P)) if criterion == "det" else np.trace(P, axis1=1, axis2=2)
+    second = np.diff(values, 2)
+    assert second.min() >= -1e-9 * np.abs(values).max()
+
+
+@settings(max_examples=30)
+@given(systems(), st.integers(1, 4), st.floats(0.0, 1.0), st.data())
+def test_propagated_bound_holds_for_every_admissible_correlation(system, horizon, omega, data):
+    F, Q, H, R, PA, PB = system
+    joint = data.draw(joint_covariances([PA, PB]))
+    fused = covariance_intersection([np.zeros(2)] * 2, [PA, PB], omega=omega)
+    bound, actual = fused.P, fused_error_covariance(fused.gains, joint)
+    for _ in range(horizon):  # the filter runs on the bound; the true error follows
+        M = F @ bound @ F.T + Q
+        K = M @ H.T @ np.linalg.inv(H @ M @ H.T + R)
+        A = np.eye(2) - K @ H
+        bound = A @ M @ A.T + K @ R @ K.T
+        actual = A @ (F @ actual @ F.T + Q) @ A.T + K @ R @ K.T
+    np.testing.assert_allclose(bound, propagate_bound(fused.P, F, Q, H, R, horizon), rtol=1e-7,
+                               atol=1e-9)
+    assert_psd(bound - actual, tol=1e-7, what="bound - actual MSE")
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_horizon_zero_is_ordinary_ci(seed):
+    F, Q, H, R, PA, PB = random_system(seed)
+    for criterion in ("det", "trace"):
+        r = optimal_omega(PA, PB, F, Q, H, R, 0, criterion)
+        omega, _ = ci_weights([PA, PB], criterion)
+        assert float(r.omega) == pytest.approx(omega[0], abs=1e-10)
+        np.testing.assert_allclose(r.P, ci_bound(PA, PB, omega[0]), rtol=1e-9)
+
+
+def test_omega_is_well_defined_at_horizons_beyond_rounding():
+    """The omega-dependent part decays like rho^(2 kappa); carried on a log scale, the
+    optimum at kappa = 1000 equals the limit although the criterion values agree to
+    machine precision there."""
+    PA, PB = local_bounds_at_zero()
+    far = optimal_omega(PA, PB, F_DYN, Q_DYN, H_A, R_A, 1000, "det")
+    study = horizon_study(PA, PB, F_DYN, Q_DYN, H_A, R_A, 5, "det")
+    assert float(far.omega) == pytest.approx(float(study.omega_limit), abs=1e-10)
+    assert far.info["value_recursive"] == pytest.approx(far.value, rel=1e-14)
+
+
+# ----------------------------------------------------------------- N estimates
+@pytest.mark.parametrize("criterion", ["det", "trace", "weighted"])
+def test_three_estimates_against_a_simplex_grid(criterion):
+    F, Q, H, R, PA, PB = random_system(11, n=2, p=1)
+    PC = np.array([[1.0, 0.3], [0.3, 0.5]])
+    crit = np.diag([1.0, 4.0]) if criterion == "weighted" else criterion
+    r = horizon_weights([PA, PB, PC], F, Q, H, R, 3, crit)
+    assert r.omega.shape == (3,) and r.omega.sum() == pytest.approx(1.0)
+    assert r.info["converged"]
+    steps = 80
+    grid = np.array([(i, j, steps - i - j) for i in range(steps + 1)
+                     for j in range(steps + 1 - i)]) / steps
+    Ps = np.stack([PA, PB, PC])
+    info = np.einsum("gk,kij->gij", grid, np.linalg.inv(Ps))
+    values = criterion_value(propagate_bound(np.linalg.inv(info), F, Q, H, R, 3), crit)
+    assert r.value <= values.min() * (1 + 1e-9)
+    fused = np.linalg.inv(np.einsum("k,kij->ij", r.omega, np.linalg.inv(Ps)))
+    np.testing.assert_allclose(r.P, propagate_bound(fused, F, Q, H, R, 3), rtol=1e-8)
+
+
+def test_n_weights_with_two_estimates_equal_optimal_omega():
+    F, Q, H, R, PA, PB = random_system(4)
+    for criterion in ("det", "trace"):
+        pair = optimal_omega(PA, PB, F, Q, H, R, 2, criterion)
+        general = horizon_weights([PA, PB], F, Q, H, R, 2, criterion)
+        assert general.omega[0] == pytest.approx(float(pair.omega), abs=1e-12)
+
+
+# ----------------------------------------------------------------- propagate_bound
+def test_propagate_bound_matches_filterpy():
+    F, Q, H, R, P, _ = random_system(2)
+    kf = fk.KalmanFilter(dim_x=3, dim_z=2)
+    kf.F, kf.Q, kf.H, kf.R, kf.P = F, Q, H, R, P.copy()
+    history = propagate_bound(P, F, Q, H, R, 4, history=True)
+    for step in range(4):
+        kf.predict()
+        kf.update(np.zeros((2, 1)))
+        np.testing.assert_allclose(history[step + 1], kf.P, rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(history[0], P)
+
+
+def test_propagate_bound_per_step_models_and_prediction_only():
+    F, Q, H, R, P, _ = random_system(5)
+    G = np.array([[1.0], [0.5], [0.0]])
+    only = propagate_bound(P, F, 2.0, None, None, 2, G=G)
+    noise = 2.0 * G @ G.T
+    np.testing.assert_allclose(only, F @ (F @ P @ F.T + noise) @ F.T + noise, rtol=1e-12)
+    H2 = np.array([[1.0, 0.0, 0.0]])
+    steps = propagate_bound(P, F, Q, [H, None, H2], [R, None, 0.5], 3)
+    expected = propagate_bound(P, F, Q, H, R, 1)
+    expected = propagate_bound(expected, F, Q, None, None, 1)
+    expected = propagate_bound(expected, F, Q, H2, 0.5 * np.eye(1), 1)
+    np.testing.assert_allclose(steps, expected, rtol=1e-12)
+    # a nested list is one matrix, not a sequence of steps
+    np.testing.assert_allclose(propagate_bound(P, F, Q, [[1.0, 0.0, 0.0]], 0.5, 2),
+                               propagate_bound(P, F, Q, H2, [[0.5]], 2), rtol=1e-13)
+
+
+def test_batched_equals_per_item():
+    systems_ = [random_system(seed) for seed in range(4)]
+    F, Q, H, R, PA, PB = (np.stack(parts) for parts in zip(*systems_))
+    for criterion in ("det", "trace"):
+        batched = optimal_omega(PA, PB, F, Q, H, R, 3, criterion)
+        study = horizon_study(PA, PB, F, Q, H, R, 3, criterion)
+        for i, system in enumerate(systems_):
+            single = optimal_omega(system[4], system[5], *system[:4], 3, criterion)
+            assert batched.omega[i] == pytest.approx(float(single.omega), abs=1e-12)
+            np.testing.assert_allclose(batched.P[i], single.P, rtol=1e-12)
+            one = horizon_study(system[4], system[5], *system[:4], 3, criterion)
+            np.testing.assert_allclose(study.omega[i], one.omega, atol=1e-12)
+            np.testing.assert_allclose(study.recursive[i], one.recursive, rtol=1e-12)
+    # one model, a batch of estimate pairs
+    pairs = optimal_omega(PA, PB[0], F[0], Q[0], H[0], R[0], 2)
+    assert pairs.omega.shape == (4,)
+    assert pairs.omega[0] == pytest.approx(float(optimal_omega(PA[0], PB[0], F[0], Q[0], H[0],
+                                                               R[0], 2).omega), abs=1e-12)
+
+
+def test_inputs_are_not_mutated():
+    F, Q, H, R, PA, PB = random_system(8)
+    arrays = [F, Q, H, R, PA, PB]
+    copies = [a.copy() for a in arrays]
+    optimal_omega(PA, PB, F, Q, H, R, 3, "det")
+    horizon_study(PA, PB, F, Q, H, R, 3)
+    propagate_bound(PA, F, Q, H, R, 3)
+    steady_state_covariance(F / 2, Q, H, R)
+    for a, b in zip(arrays, copies):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_steady_state_without_measurements_is_the_lyapunov_solution():
+    P = steady_state_covariance(F_DYN, Q_DYN, None, None)
+    np.testing.assert_allclose(F_DYN @ P @ F_DYN.T + Q_DYN, P, rtol=1e-10)
+    with pytest.raises(ValueError, match="stable F"):
+        steady_state_covariance(np.eye(2), Q_DYN, None, None)
+    batched = steady_state_covariance(np.stack([F_DYN, 0.5 * np.eye(2)]), Q_DYN, H_A, R_A)
+    np.testing.assert_allclose(batched[0], steady_state_covariance(F_DYN, Q_DYN, H_A, R_A))
+
+
+def test_study_result_fields_and_plot():
+    import matplotlib.pyplot as plt
+
+    PA, PB = local_bounds_at_zero()
+    s = horizon_study(PA, PB, F_DYN, Q_DYN, H_A, R_A, [0, 2, 7], "det")
+    assert s.horizons.tolist() == [0, 2, 7]
+    assert s.omega.shape == s.batch.shape == s.recursive.shape == (3,)
+    assert s.P_batch.shape == (3, 2, 2)
+    fig = s.plot(label="A")
+    assert len(fig.axes) == 2
+    plt.close(fig)
+    batched = horizon_study(np.stack([PA, PB]), PB, F_DYN, Q_DYN, H_A, R_A, 2)
+    assert batched.omega.shape == (2, 3)
+    with pytest.raises(ValueError, match="batched"):
+        batched.plot()
+
+
+@pytest.mark.parametrize("call, error, match", [
+    (lambda: propagate_bound(np.eye(2), np.eye(2), np.eye(2), np.eye(2), np.eye(2), -1),
+     ValueError, "horizon must be >= 0"),
+    (lambda: propagate_bound(np.eye(2), np.eye(2), np.eye(2), np.eye(2), np.eye(2), 1.5),
+     TypeError, "horizon must be an integer"),
+    (lambda: propagate_bound(np.eye(2), np.eye(3), np.eye(2), None, None, 1),
+     ValueError, "F must have shape"),
+    (lambda: propagate_bound(np.eye(2), np.eye(2), -np.eye(2), None, None, 1),
+     ValueError, "Q must be positive semidefinite"),
+    (lambda: propagate_bound(np.eye(2), np.eye(2), np.eye(2), np.eye(2), None, 1),
+     ValueError, "R is None but H is not"),
+    (lambda: propagate_bound(np.eye(2), np.eye(2), np.eye(2), np.ones((1, 3)), 1.0, 1),
+     ValueError, "H must have shape"),
+    (lambda: propagate_bound(np.eye(2), np.eye(2), np.eye(2), np.eye(2), -np.eye(2), 1),
+     ValueError, "R is not positive definite"),
+    (lambda: propagate_bound(np.eye(2), np.eye(2), np.eye(2), [np.eye(2)], [np.eye(2)], 2),
+     ValueError, "one per step"),
+    (lambda: propagate_bound(np.eye(2), np.eye(2), np.eye(2), [np.eye(2)], np.eye(2), 1),
+     ValueError, "R must be a sequence"),
+    (lambda: propagate_bound(np.diag([1.0, -1.0]), np.eye(2), 1.0, None, None, 1),
+     ValueError, "P is not positive definite"),
+    (lambda: propagate_bound("P", np.eye(2), 1.0, None, None, 1), TypeError, "P must be"),
+    (lambda: optimal_omega(np.eye(2), np.eye(3), np.eye(2), 1.0, None, None, 1),
+     ValueError, "PB is 3x3"),
+    (lambda: optimal_omega(np.eye(2), np.eye(2), np.eye(2), 1.0, None, None, 1, "max"),
+     ValueError, "criterion must be"),
+    (lambda: optimal_omega(np.eye(2), np.eye(2), np.full((2, 2), np.nan), 1.0, None, None, 1),
+     ValueError, "F contains non-finite"),
+    (lambda: horizon_study(np.eye(2), np.eye(2), np.eye(2), 1.0, None, None, [1, -2]),
+     ValueError, "horizons must be >= 0"),
+    (lambda: horizon_study(np.eye(2), np.eye(2), np.eye(2), 1.0, None, None, []),
+     ValueError, "horizons must be"),
+    (lambda: horizon_weights([np.eye(2)], np.eye(2), 1.0, None, None, 1),
+     ValueError, "at least 2 estimates"),
+    (lambda: steady_state_covariance(np.eye(2), np.eye(2), [np.eye(2)], [np.eye(2)]),
+     ValueError, "not a sequence"),
+])
+def test_bad_input_is_rejected(call, error, match):
+    with pytest.raises(error, match=match):
+        call()
+
+
+# ----------------------------------------------------------------- filters: fuse(horizon=)
+def dynamic_filter(name):
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    kf.F, kf.Q = F_DYN.copy(), Q_DYN.copy()
+    kf.H, kf.R = (H_A.copy(), np.eye(1) * R_A) if name == "A" else (H_B.copy(), np.eye(1) * R_B)
+    return kf
+
+
+@pytest.mark.parametrize("criterion", ["det", "trace"])
+def test_filter_fuse_with_horizon_uses_its_own_model(criterion):
+    PA, PB = local_bounds_at_zero()
+    kf = dynamic_filter("A")
+    kf.x, kf.P = np.array([[1.0], [2.0]]), PA.copy()
+    other = (np.array([0.0, 1.0]), PB.copy())
+    other_copy = copy.deepcopy(other)
+    result = kf.fuse(other, horizon=10, criterion=criterion)
+    expected = optimal_omega(PA, PB, F_DYN, Q_DYN, H_A, R_A, 10, criterion)
+    assert result.omega[0] == pytest.approx(float(expected.omega), abs=1e-12)
+    assert kf.last_fusion is result
+    assert result.info["rule"] == "horizon" and result.info["horizon"] == 10
+    assert result.info["model"] == "filter"
+    assert result.info["horizon_value"] == pytest.approx(float(expected.value), rel=1e-12)
+    assert result.info["horizon_value_recursive"] >= result.info["horizon_value"]
+    plain = covariance_intersection([np.array([1.0, 2.0]), other[0]], [PA, PB],
+                                    omega=float(expected.omega))
+    np.testing.assert_allclose(kf.x[:, 0], plain.x, rtol=1e-12)
+    np.testing.assert_allclose(kf.P, plain.P, rtol=1e-12)
+    np.testing.assert_array_equal(kf.P_post, kf.P)
+    np.testing.assert_array_equal(other[0], other_copy[0])
+    np.testing.assert_array_equal(other[1], other_copy[1])
+
+
+def test_filter_fuse_horizon_zero_equals_plain_ci_and_future_model_overrides():
+    PA, PB = local_bounds_at_zero()
+    kf, plain = dynamic_filter("A"), dynamic_filter("A")
+    kf.P, plain.P = PA.copy(), PA.copy()
+    r0 = kf.fuse((np.zeros(2), PB), horizon=0, criterion="det")
+    rp = plain.fuse((np.zeros(2), PB), criterion="det")
+    assert r0.omega[0] == pytest.approx(rp.omega[0], abs=1e-12)
+    # filter A fusing as if it were filter B (the future model) picks B's omega
+    kf.P = PA.copy()
+    future = dict(F=F_DYN, Q=Q_DYN, H=H_B, R=R_B)
+    r = kf.fuse((np.zeros(2), PB), horizon=30, future=future, criterion="det")
+    assert r.info["model"] == "future"
+    assert r.omega[0] == pytest.approx(0.853, abs=1e-3)
+    kf.P = PA.copy()
+    r_obj = kf.fuse((np.zeros(2), PB), horizon=30, future=dynamic_filter("B"), criterion="det")
+    assert r_obj.omega[0] == pytest.approx(r.omega[0], abs=1e-12)
+
+
+def test_filter_fuse_with_horizon_and_several_estimates():
+    kf = dynamic_filter("A")
+    kf.P = np.diag([1.0, 2.0])
+    others = [(np.zeros(2), np.diag([2.0, 1.0])), (np.ones(2), np.diag([1.5, 1.5]))]
+    r = kf.fuse(others, horizon=4)
+    expected = horizon_weights([np.diag([1.0, 2.0]), np.diag([2.0, 1.0]), np.diag([1.5, 1.5])],
+                               F_DYN, Q_DYN, H_A, R_A, 4)
+    np.testing.assert_allclose(r.omega, expected.omega, atol=1e-10)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(horizon=2, method="naive"), ValueError, "needs method='ci'"),
+    (dict(horizon=2, omega=0.3), ValueError, "give one"),
+    (dict(future=dict(F=F_DYN, Q=Q_DYN)), ValueError, "give horizon="),
+    (dict(horizon=2, future=dict(F=F_DYN)), ValueError, "at least F and Q"),
+    (dict(horizon=2, future=dict(F=F_DYN, Q=Q_DYN, X=1)), ValueError, "unknown entries"),
+    (dict(horizon=-1), ValueError, "horizon must be >= 0"),
+    (dict(horizon=2, future=dict(F=np.eye(3), Q=Q_DYN)), ValueError, "F must have shape"),
+    (dict(horizon=2, criterion="max"), ValueError, "criterion"),
+])
+def test_filter_fuse_with_horizon_is_atomic_on_bad_input(kwargs, error, match):
+    kf = dynamic_filter("A")
+    kf.x, kf.P = np.array([[1.0], [2.0]]), np.diag([1.0, 2.0])
+    before = copy.deepcopy(kf.__dict__)
+    with pytest.raises(error, match=match):
+        kf.fuse((np.zeros(2), np.eye(2)), **kwargs)
+    np.testing.assert_array_equal(kf.x, before["x"])
+    np.testing.assert_array_equal(kf.P, before["P"])
+    assert kf.last_fusion is None
+
+
+def test_extended_filter_needs_a_future_model():
+    ekf = ExtendedKalmanFilter(dim_x=2, dim_z=1)
+    ekf.P = np.diag([1.0, 2.0])
+    with pytest.raises(ValueError, match="no matrix H"):
+        ekf.fuse((np.zeros(2), np.eye(2)), horizon=3)
+    assert ekf.last_fusion is None
+    r = ekf.fuse((np.zeros(2), np.eye(2)), horizon=3,
+                 future=dict(F=ekf.F, Q=ekf.Q, H=np.array([[1.0, 0.0]]), R=ekf.R))
+    assert r.info["horizon"] == 3 and ekf.last_fusion is r
+
+
+# ----------------------------------------------------------------- reproduction command
+def test_reproduce_ajgl_prints_the_papers_numbers_and_writes_figs_3_to_8(tmp_path, capsys):
+    from cifilter.cli import main
+
+    assert main(["reproduce", "ajgl", "--horizons", "15", "--plot", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    for text in ("0.6000", "0.4124", "0.0418", "0.8532", "0.8841", "0.6949", "0.1370",
+                 "0.6927", "[0.6076 0.5772; 0.5772 1.5483]", "[2.1216 1.1806; 1.1806 1.2427]"):
+        assert text in out
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"fig{i}.png" for i in range(3, 9)]
