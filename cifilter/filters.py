@@ -10,6 +10,7 @@ from filterpy.kalman import KalmanFilter as _FilterpyKF
 from filterpy.kalman import UnscentedKalmanFilter as _FilterpyUKF
 
 from ._validation import as_estimates
+from .registry import _split_estimate
 from .registry import fuse as _fuse
 
 __all__ = ["ExtendedKalmanFilter", "FusionMixin", "KalmanFilter", "UnscentedKalmanFilter"]
@@ -88,7 +89,7 @@ def _fuse_for_horizon(filt, estimates, method, horizon, future, options):
                         f"{', '.join(map(repr, unknown))}")
     criterion = options.get("criterion", "trace")
     model = _future_model(filt, future)
-    pairs = [_as_pair(item) for item in estimates]
+    pairs = [_split_estimate(item, i) for i, item in enumerate(estimates)]
     stacked = as_estimates([pair[0] for pair in pairs], [pair[1] for pair in pairs],
                            names=("estimates' x", "estimates' P"))
     choice = horizon_weights(stacked.P, model["F"], model["Q"], model["H"], model["R"], horizon,
@@ -107,13 +108,6 @@ def _fuse_for_horizon(filt, estimates, method, horizon, future, options):
         solver=choice.info["solver"],
     )
     return result.replace(info=info)
-
-
-def _as_pair(item):
-    """(x, P) of a filter or of a pair."""
-    if hasattr(item, "x") and hasattr(item, "P"):
-        return item.x, item.P
-    return item[0], item[1]
 
 
 class FusionMixin:
