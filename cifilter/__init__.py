@@ -3,6 +3,8 @@
 Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
 
 * :func:`covariance_intersection` (``"ci"``), with optimal and fast weights, for N estimates;
+* :func:`partial_ci` (``"pci"``), partial-correlation CI given a correlation coefficient
+  bound (Wu, Cai & Fu 2018; trace and correlation bounds in :mod:`cifilter.bounds`);
 * :func:`naive_fusion` (``"naive"``) and :func:`optimal_fusion` (``"optimal"``), the
   references for independent and for known correlations;
 * every rule is reachable through :func:`fuse` and the registry
@@ -11,10 +13,12 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
 
 from . import ci as _ci  # noqa: F401  (registers "ci")
 from . import optimal as _optimal  # noqa: F401  (registers "naive", "optimal")
+from . import pci as _pci  # noqa: F401  (registers "pci")
 from ._linalg import mahalanobis_sq
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
 from .optimal import naive_fusion, optimal_fusion
+from .pci import partial_ci
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
 
@@ -36,5 +40,6 @@ __all__ = [
     "mahalanobis_sq",
     "naive_fusion",
     "optimal_fusion",
+    "partial_ci",
     "register_method",
 ]
