@@ -3,6 +3,10 @@
 Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
 
 * :func:`covariance_intersection` (``"ci"``), with optimal and fast weights, for N estimates;
+* :func:`partial_ci` (``"pci"``), partial-correlation CI given a correlation coefficient
+  bound (Wu, Cai & Fu 2018; trace and correlation bounds in :mod:`cifilter.bounds`);
+* :mod:`cifilter.horizon`: CI weights chosen for the bound after future filtering
+  (Ajgl et al. 2014), also as ``kf.fuse(other, horizon=k)``;
 * :func:`naive_fusion` (``"naive"``) and :func:`optimal_fusion` (``"optimal"``), the
   references for independent and for known correlations;
 * every rule is reachable through :func:`fuse` and the registry
@@ -11,11 +15,13 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
 
 from . import ci as _ci  # noqa: F401  (registers "ci")
 from . import optimal as _optimal  # noqa: F401  (registers "naive", "optimal")
+from . import pci as _pci  # noqa: F401  (registers "pci")
 from ._linalg import mahalanobis_sq
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
 from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
 from .optimal import naive_fusion, optimal_fusion
+from .pci import partial_ci
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
 
@@ -39,6 +45,7 @@ __all__ = [
     "naive_fusion",
     "optimal_fusion",
     "optimal_omega",
+    "partial_ci",
     "propagate_bound",
     "register_method",
     "steady_state_covariance",

@@ -143,7 +143,14 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         d = np.where(free, solution[..., :count], 0.0)
         mu = -solution[..., count] * curvature[..., 0, 0]
 
-        small = np.abs(d).max(axis=-1) < xtol
+        small_step = np.abs(d).max(axis=-1) < xtol
+        slope = np.einsum("...i,...i->...", g, d)
+        # -g.d = d^T H d, the squared Newton decrement. Below the rounding level of f the face
+        # is solved to working precision even if d exceeds xtol (flat, badly scaled problems):
+        # the line search cannot tell a decrease from rounding noise there and would stall
+        # until max_iter, so the problem stops after taking this last step unchecked.
+        rounding = -slope <= 4.0 * np.finfo(float).eps * np.abs(f)
+        small = small_step | rounding
         g_scale = np.abs(g).max(axis=-1) + np.finfo(float).tiny
         deficit = np.where(free, 0.0, g - mu[..., None])  # < 0: releasing helps
         release_any = (deficit < -1e-12 * g_scale[..., None]).any(axis=-1)
@@ -156,19 +163,19 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         releasing = active & small & release_any
         free = free | (releasing[..., None] & (deficit < -1e-12 * g_scale[..., None]))
 
-        stepping = active & ~small
+        last = converged_now & rounding & ~small_step
+        stepping = (active & ~small) | last
         if not stepping.any():
             continue
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(free & (d < 0), w / -d, np.inf)
         t_max = ratio.min(axis=-1)
         t = np.minimum(1.0, t_max)
-        slope = np.einsum("...i,...i->...", g, d)
         for _ in range(60):  # Armijo backtracking, batched
             trial = np.where(stepping[..., None], w + t[..., None] * d, w)
             trial = np.clip(trial, 0.0, None)
             f_trial = objective(trial)
-            failed = stepping & ~(f_trial <= f + 1e-4 * t * slope + 1e-15 * np.abs(f))
+            failed = stepping & ~last & ~(f_trial <= f + 1e-4 * t * slope + 1e-15 * np.abs(f))
             if not failed.any():
                 break
             t = np.where(failed, 0.5 * t, t)
