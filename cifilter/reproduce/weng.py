@@ -65,6 +65,10 @@ GRID = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0)  # sweeps of sigma_0^2 and sigma^2 (not in
 NODES = (2, 3, 4, 5, 6)  # Fig. 9 (range not in the text)
 SAMPLE_SIZES = (1, 2, 5, 10, 20, 50, 100, 200, 500)  # Fig. 10 (range not in the text)
 DIM = 2  # the state dimension of every experiment of both papers
+# "About p%" in the text counts as reproduced when the mean over a sweep lies within a
+# factor of two of p.
+ABOUT_20 = (0.10, 0.40)
+ROUGHLY_10 = (0.05, 0.20)
 
 
 class FusionData(NamedTuple):
@@ -463,7 +467,7 @@ def _ordering_claims(claims, where, results, target, gap_paper, gap_range):
                    "much better than the (fast) CI", f"Bayesian / {LABELS[ci]} = {_span(ratio)}",
                    np.all(ratio < 1))
     gap = np.mean(bayes_opt - 1)
-    claims.add(where, "size of the Bayesian-optimal gap", gap_paper,
+    claims.add(where, "size of the Bayesian-optimal gap (mean within a factor 2)", gap_paper,
                f"Bayesian / optimal - 1 = {_span(bayes_opt - 1)}, mean {gap:.3f}",
                gap_range[0] <= gap <= gap_range[1])
 
@@ -500,7 +504,7 @@ def _conference(args, runner, claims, out, figures):
                              f"{_target_name(target)} ({fixed})",
                              axis_name, GRID, results, target, out)
                 _ordering_claims(claims, f"conf. Fig. {fig}, dof {dof:g}, vs {target}", results,
-                                 target, "Bayesian about 20% worse than optimal", (0.1, 0.3))
+                                 target, "Bayesian about 20% worse than optimal", ABOUT_20)
     figures.append(("conference", sweeps))
 
 
@@ -522,10 +526,11 @@ def _model1(args, runner, claims, out, figures):
                    np.all(bayes_opt > 1))
         for ci in FAST_CI:
             gain = 1 - _ratios(results, "bayes", ci, "mean")
-            claims.add(f"model 1 Fig. {k}", f"Bayesian roughly 10% better than {LABELS[ci]}",
+            claims.add(f"model 1 Fig. {k}", f"Bayesian roughly 10% better than {LABELS[ci]} "
+                       "(mean within a factor 2)",
                        "roughly 10% better than the CI method",
                        f"1 - Bayesian / {LABELS[ci]} = {_span(gain)}, mean {gain.mean():.3f}",
-                       0.05 <= gain.mean() <= 0.15)
+                       ROUGHLY_10[0] <= gain.mean() <= ROUGHLY_10[1])
     normalised = {k: {e: _ratios(sweeps[f"Fig. {k} (k = {k})"][2], e, "optimal", "mean").mean()
                       for e in ("bayes",) + FAST_CI} for k in (2, 3)}
     print("\nFig. 4: normalised MSE (MSE / optimal MSE, mean over the sweep; in model 1 it does "
@@ -569,7 +574,7 @@ def _model2(args, runner, claims, out, figures):
             _print_table(f"Fig. {fig}, k = {k}: MSE against {axis_name} ({fixed})",
                          axis_name, values, results, target, out)
             _ordering_claims(claims, f"model 2 Fig. {fig}, k = {k}, vs {target}", results,
-                             target, "Bayesian about 20% worse than optimal", (0.1, 0.3))
+                             target, "Bayesian about 20% worse than optimal", ABOUT_20)
         print(f"\n  across k and the sweeps (error against {_target_name(target)}):", file=out)
         for fig in ("5", "6"):
             mse2 = np.array([r[target]["bayes"] for r in sweeps[(fig, 2)][2]])
