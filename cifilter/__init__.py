@@ -9,14 +9,20 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
   (Ajgl et al. 2014), also as ``kf.fuse(other, horizon=k)``;
 * :func:`naive_fusion` (``"naive"``) and :func:`optimal_fusion` (``"optimal"``), the
   references for independent and for known correlations;
+* :func:`bayesian_fusion` (``"bayes"``), the Monte Carlo MMSE fusion under a Wishart prior
+  (Weng & Djurić), and its sampler :func:`sample_joint_covariances`;
 * every rule is reachable through :func:`fuse` and the registry
   (:func:`register_method`, :func:`available_methods`).
 """
 
+# The rules register themselves when their module is imported; this order is the order of
+# available_methods() and of the demo's table (so the imports are not sorted).
 from . import ci as _ci  # noqa: F401  (registers "ci")
 from . import optimal as _optimal  # noqa: F401  (registers "naive", "optimal")
 from . import pci as _pci  # noqa: F401  (registers "pci")
+from . import bayes as _bayes  # noqa: F401  (registers "bayes")
 from ._linalg import mahalanobis_sq
+from .bayes import bayesian_fusion, sample_joint_covariances
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
 from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
@@ -36,6 +42,7 @@ __all__ = [
     "KalmanFilter",
     "UnscentedKalmanFilter",
     "available_methods",
+    "bayesian_fusion",
     "ci_weights",
     "covariance_intersection",
     "fuse",
@@ -48,5 +55,6 @@ __all__ = [
     "partial_ci",
     "propagate_bound",
     "register_method",
+    "sample_joint_covariances",
     "steady_state_covariance",
 ]
