@@ -14,9 +14,9 @@ trace of the bound. The Newton solver is timed the same way.
 import argparse
 import os
 import platform
-import time
 
 import numpy as np
+from bench_ci import best_of  # the benchmarks' directory is on the path of a script
 
 import cifilter
 
@@ -35,15 +35,6 @@ def loop_fusion(xs, Ps, rho, solver):
         cifilter.partial_ci(xs[k], Ps[k], rho, solver=solver).info["value"]
         for k in range(len(xs))
     ])
-
-
-def best_of(repeats, function):
-    times, result = [], None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = function()
-        times.append(time.perf_counter() - start)
-    return min(times), result
 
 
 def report(count, solver, xs, Ps, rho, loop_problems):
