@@ -248,6 +248,17 @@ class Fused(NamedTuple):
     eta: np.ndarray  # (..., 2, n) independent information vectors
 
 
+def mean_ratio(w, eps, mutual_mean):
+    """``R_a`` per eigen-direction of EI's regularised mutual mean (see ``fuse_diagonal``)."""
+    lam = w.lam
+    alpha, beta = np.maximum(0.0, 1.0 - lam), np.maximum(0.0, lam - 1.0)
+    eta = 0.5 * eps * (1.0 + lam)
+    w_a, w_b = alpha + eta, beta + eta
+    total = w_a + w_b
+    own = w_a if mutual_mean == "as-printed" else w_b
+    return np.where(total > 0, own / np.where(total > 0, total, 1.0), 0.5)
+
+
 def fuse_diagonal(w, eps, mutual_mean):
     """EI with the information regulariser, one eigen-direction at a time (closed form).
 
@@ -262,11 +273,7 @@ def fuse_diagonal(w, eps, mutual_mean):
     d, lam = w.d, w.lam
     c = np.maximum(d, 1.0)
     alpha, beta = np.maximum(0.0, 1.0 - lam), np.maximum(0.0, lam - 1.0)
-    eta = 0.5 * eps * (1.0 + lam)
-    w_a, w_b = alpha + eta, beta + eta
-    total = w_a + w_b
-    own = w_a if mutual_mean == "as-printed" else w_b
-    R_a = np.where(total > 0, own / np.where(total > 0, total, 1.0), 0.5)
+    R_a = mean_ratio(w, eps, mutual_mean)
     R_b = 1.0 - R_a
     m = R_a * w.a + R_b * w.b
     variance = np.minimum(1.0, d)
@@ -280,23 +287,20 @@ def fuse_diagonal(w, eps, mutual_mean):
                  c[..., None] * eye, alpha[..., None] * eye, beta[..., None] * eye, eta_vec)
 
 
-def fuse_full(w, J, A, B, mutual_mean, average=None):
+def fuse_full(w, J, A, B, mutual_mean, R_a=None):
     """Fusion with a general common information ``J`` (whitened), eqs. (5)-(8) and (13).
 
-    ``m = R_a a + R_b b`` with ``R_a = (A + B)^-1 W_a``; the fused information is
-    ``I + diag(lam) - J`` and ``K_a = P (I - J R_a)``, ``K_b = P (diag(lam) - J R_b)``, so
-    that ``x = K_a a + K_b b`` and ``K_a + K_b = I``. Where ``average`` is true (equal
-    covariances, ``A = B`` singular) the mutual mean is the average, the limit of both
-    weightings (``R_a = I / 2``).
+    ``m = R_a a + R_b b`` with ``R_a = (A + B)^-1 W_a`` unless ``R_a`` is given (where
+    ``A + B`` is singular and the mutual mean is known as a limit); the fused information
+    is ``I + diag(lam) - J`` and ``K_a = P (I - J R_a)``, ``K_b = P (diag(lam) - J R_b)``,
+    so that ``x = K_a a + K_b b`` and ``K_a + K_b = I``.
     """
     n = J.shape[-1]
     eye = np.eye(n)
     lam_mat = w.lam[..., None] * eye
-    R_a = np.array(np.broadcast_to(0.5 * eye, J.shape))
-    general = np.ones(J.shape[:-2], dtype=bool) if average is None else ~average
-    if general.any():
-        W_a, _ = mutual_mean_weights(A[general], B[general], mutual_mean)
-        R_a[general] = _solve(A[general] + B[general], W_a)
+    if R_a is None:
+        W_a, _ = mutual_mean_weights(A, B, mutual_mean)
+        R_a = _solve(A + B, W_a)
     R_b = eye - R_a
     P = symmetrize(np.linalg.inv(symmetrize(eye + lam_mat - J)))
     K_a, K_b = P @ (eye - J @ R_a), P @ (lam_mat - J @ R_b)

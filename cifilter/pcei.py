@@ -44,6 +44,8 @@ from .ei import (
     decompose,
     ei_in_whitened,
     fuse_full,
+    mean_ratio,
+    mutual_mean_weights,
     ties,
     to_original,
     whiten,
@@ -60,6 +62,7 @@ _MU = 100.0  # barrier parameter growth per centring
 # _CENTRE_TOL / t of the centre, far below the gap (n + 1) / t.
 _CENTRE_TOL = 1e-4
 _AGREE_TOL = 1e-7  # starts whose objective is within this of the best "agree"
+_KKT_TOL = 1e-3  # relative KKT residual below which a finished solve counts as converged
 
 
 # --------------------------------------------------------------------------- symmetric basis
@@ -264,7 +267,8 @@ def _interior_point(problem, N, tol, max_iter):
     99% of the way to their boundary), multiplying ``t`` by 100 whenever the iterate is
     centred, up to ``t = (n + 1) / tol``: then ``(n + 1) / t`` bounds the distance of the
     objective to that of the KKT point the path leads to. Returns ``N``, ``t``, Newton
-    iterations and convergence flags per problem.
+    iterations and whether the last stage was reached and centred (or stalled at the
+    rounding level) per problem.
     """
     size, n = N.shape[0], problem.basis.n
     N = N.copy()
@@ -275,7 +279,7 @@ def _interior_point(problem, N, tol, max_iter):
     excess = _logdet(problem.J0) - _logdet(problem.J0 - N)
     t = np.clip((n + 1) / np.maximum(excess, 1e-300), 1.0, t_final)
     iterations = np.zeros(size, dtype=int)
-    converged = np.zeros(size, dtype=bool)
+    finished = np.zeros(size, dtype=bool)
     done = np.zeros(size, dtype=bool)
     for _ in range(max_iter):
         index = np.flatnonzero(~done)
@@ -301,14 +305,16 @@ def _interior_point(problem, N, tol, max_iter):
         iterations[index] += 1
         last = t_i >= t_final
         centred = decrement / 2 <= _CENTRE_TOL
-        # A stalled line search means the barrier is minimised to rounding precision (at
-        # t ~ 1e9 rounding in its value is ~1e-16 t): move on, but do not claim success.
-        advance = centred | ~accepted
-        finished = last & advance
-        converged[index] = finished & centred
-        done[index] = finished
+        # The barrier value is ~t f, so at t ~ 1e9 its rounding (~1e-16 t) hides decreases
+        # below ~1e-13 |value|: a step that cannot promise more has stalled at the
+        # rounding level (Armijo would accept noise). Stalls move on; whether the result
+        # is a KKT point is checked separately (_kkt_residual).
+        stalled = ~accepted | (s * decrement < 1e-13 * np.maximum(1.0, np.abs(f0)))
+        advance = centred | stalled
+        finished[index] = last & advance
+        done[index] = finished[index]
         t[index] = np.where(advance & ~last, np.minimum(t_i * _MU, t_final), t_i)
-    return N, t, iterations, converged
+    return N, t, iterations, finished
 
 
 def _kkt_residual(problem, N):
@@ -393,7 +399,7 @@ def _solve_batch(problem, tie, tol, max_iter):
     if rows.size == 0:
         return result
     flat = problem.take(rows)
-    N, t, iterations, converged = _interior_point(flat, N0[rows, cols], tol, max_iter)
+    N, t, iterations, finished = _interior_point(flat, N0[rows, cols], tol, max_iter)
     objective = np.full((size, count), np.inf)
     objective[rows, cols] = -_logdet(flat.J0 - N)
     best = np.argmin(objective, axis=1)
@@ -404,8 +410,9 @@ def _solve_batch(problem, tie, tol, max_iter):
     pick = chosen[ok]
     result["N"][ok] = N[pick]
     result["iterations"][ok] = iterations[pick]
-    result["converged"][ok] = converged[pick]
-    result["kkt_residual"][ok] = _kkt_residual(flat.take(pick), N[pick])
+    residual = _kkt_residual(flat.take(pick), N[pick])
+    result["kkt_residual"][ok] = residual
+    result["converged"][ok] = finished[pick] & (residual <= _KKT_TOL)
     result["duality_gap"][ok] = (n + 1) / t[pick]
     best_value = objective[np.arange(size), best][:, None]
     result["starts_agree"] = np.sum(objective <= best_value + _AGREE_TOL, axis=1)
@@ -456,19 +463,23 @@ def _pc_in_whitened(w, gamma, eps, mutual_mean, regularizer, tol, max_iter):
         "starts_agree": np.zeros(size, dtype=int),
     }
     N = np.zeros((size, n, n))
-    e = w.a - w.b
-    tied = need & tie.all(axis=-1)
-    if tied.any():
-        # Equal covariances: psi = e^T N^+ e / 2 (e in the range of N), so psi <= gamma
-        # forces N >= e e^T / (2 gamma), and J = I - e e^T / (2 gamma) has the largest
-        # determinant. Feasible when |e|^2 < 2 gamma (J stays positive definite).
-        index = np.flatnonzero(tied)
-        ok = np.einsum("...i,...i->...", e[index], e[index]) < 2.0 * gamma
-        N[index[ok]] = e[index[ok], :, None] * e[index[ok], None, :] / (2.0 * gamma)
+    # Closed form (see the module docstring): the constraint only needs common information
+    # removed in the tied directions Z, where A = B = N; psi >= e_Z^T N_ZZ^-1 e_Z / 2, so
+    # N_ZZ >= e_Z e_Z^T / (2 gamma), and N = e_Z e_Z^T / (2 gamma) attains it. This holds
+    # when every direction is tied, and with Sijs & Lazar's mean (which leaves psi = 0 in
+    # the untied directions of EI) for any tie pattern.
+    sl_exact = mutual_mean == "sijs-lazar" and not (regularizer == "covariance" and eps > 0)
+    closed = need & (tie.all(axis=-1) | sl_exact)
+    e_tied = np.where(tie, w.a - w.b, 0.0)
+    if closed.any():
+        index = np.flatnonzero(closed)
+        e = e_tied[index]
+        ok = np.einsum("...i,...i->...", e, e) < 2.0 * gamma
+        N[index[ok]] = e[ok, :, None] * e[ok, None, :] / (2.0 * gamma)
         info["feasible"][index] = ok
         info["psi"][index[ok]] = gamma
         info["solver"][index] = "closed-form"
-    index = np.flatnonzero(need & ~tied)
+    index = np.flatnonzero(need & ~closed)
     if index.size:
         problem = _Problem(A0[index], B0[index], J0[index], w.a[index], w.b[index],
                            lam[index], np.full(index.size, np.log(gamma)), mutual_mean)
@@ -479,14 +490,36 @@ def _pc_in_whitened(w, gamma, eps, mutual_mean, regularizer, tol, max_iter):
         info["solver"][index] = "interior-point"
         ok = solved["feasible"]
         info["psi"][index[ok]] = problem.take(ok).decompose(N[index[ok]]).psi
-    use = np.flatnonzero(need & info["feasible"])
+    # A solve that did not converge keeps EI's result (flagged): this happens with the
+    # printed mean when two or more directions are tied, where A + B is singular on the
+    # tied subspace at the optimum and psi cannot be evaluated accurately near it.
+    use = np.flatnonzero(need & info["feasible"] & info["converged"])
     if use.size:
         # Assemble eqs. (7)-(8) with the new common information; keep EI elsewhere.
         w_use = type(w)(*(field[use] for field in w))._replace(d=1.0 / lam[use])
-        pc = fuse_full(w_use, J0[use] - N[use], A0[use] + N[use], B0[use] + N[use],
-                       mutual_mean, average=tied[use])
+        J, A, B = J0[use] - N[use], A0[use] + N[use], B0[use] + N[use]
+        pc = _fuse_pc(w_use, J, A, B, mutual_mean, eps, closed[use], tie[use])
         fused = type(fused)(*(_replace_rows(full, use, part) for full, part in zip(fused, pc)))
     return fused, info
+
+
+def _fuse_pc(w, J, A, B, mutual_mean, eps, closed, tie):
+    """Fuse with PC's common information; closed-form problems have a singular ``A + B``.
+
+    There the mutual mean is the average in the tied directions (``A = B`` there, for
+    both weightings) and EI's in the others (where ``N`` is zero).
+    """
+    size, n = w.d.shape
+    R_a = np.zeros((size, n, n))
+    if (~closed).any():
+        general = np.flatnonzero(~closed)
+        W_a, _ = mutual_mean_weights(A[general], B[general], mutual_mean)
+        R_a[general] = np.linalg.solve(A[general] + B[general], W_a)
+    if closed.any():
+        sub = type(w)(*(field[closed] for field in w))
+        ratio = np.where(tie[closed], 0.5, mean_ratio(sub, eps, mutual_mean))
+        R_a[closed] = ratio[..., None] * np.eye(n)
+    return fuse_full(w, J, A, B, mutual_mean, R_a=R_a)
 
 
 def _replace_rows(full, index, part):

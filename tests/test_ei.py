@@ -386,12 +386,59 @@ def test_sijs_lazar_pc_equals_ei_unless_tied_directions_have_different_means():
     assert pc.info["solver"] == "ei" and pc.info["psi"] == 0.0
     for field in ("x", "P", "gains"):
         np.testing.assert_array_equal(getattr(pc, field), getattr(ei, field))
-    # one tied direction with different means: the constraint acts
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sijs_lazar_partial_ties_closed_form_matches_the_interior_point_solver(seed):
+    """One tied direction (whitened e_Z != 0): C_c - C_EI has rank one and is optimal.
+
+    The closed form rests on psi >= e_Z^T N_ZZ^-1 e_Z / 2 (tested below); here the
+    general interior-point solver, run on the same problem, finds the same optimum.
+    """
+    g = np.random.default_rng(seed)
+    Pa = random_spd(3, seed=seed)
     T = np.linalg.cholesky(Pa)
-    Pb_tied = T @ np.diag([1.0, 2.0, 0.5]) @ T.T
-    pc = pc_ellipsoidal_intersection(xa, Pa, xb, Pb_tied)
-    assert pc.info["active"] and pc.info["solver"] == "interior-point"
-    assert pc.info["psi"] == pytest.approx(pc.info["threshold"], rel=1e-6)
+    Pb = T @ np.diag([1.0, np.exp(g.uniform(0.2, 1)), np.exp(-g.uniform(0.2, 1))]) @ T.T
+    xa, xb = 0.5 * g.standard_normal(3), 0.5 * g.standard_normal(3)
+    pc = pc_ellipsoidal_intersection(xa, Pa, xb, Pb)
+    ei = ellipsoidal_intersection(xa, Pa, xb, Pb)
+    assert pc.info["active"] and pc.info["solver"] == "closed-form"
+    added = pc.info["common_P"] - ei.info["common_P"]
+    assert np.linalg.matrix_rank(added, tol=1e-9 * np.abs(added).max()) == 1
+    # the general solver on the whitened problem
+    w = cifilter.ei.whiten(cifilter.ei._as_pair(xa[None], Pa, xb[None], Pb))
+    tie, lam, J0, A0, B0 = pcei_module._base(w, 1e-8, "information")
+    problem = pcei_module._Problem(A0, B0, J0, w.a, w.b, lam, np.log([pc.info["threshold"]]),
+                                   "sijs-lazar")
+    solved = pcei_module._solve_batch(problem, tie, 1e-10, 300)
+    assert solved["converged"][0]
+    general = -np.linalg.slogdet(J0[0] - solved["N"][0])[1]
+    closed = np.linalg.slogdet(pc.info["common_P"])[1] - np.linalg.slogdet(Pa)[1]
+    assert general == pytest.approx(closed, abs=1e-7)
+
+
+@given(st.integers(2, 5).flatmap(lambda n: st.tuples(st.just(n), st.integers(1, n - 1))),
+       st.integers(0, 2**32 - 1))
+def test_sijs_lazar_psi_is_bounded_by_the_tied_block(sizes, seed):
+    """psi(N) >= e_Z^T N_ZZ^-1 e_Z / 2 for every 0 < N < J_EI (Sijs & Lazar's mean).
+
+    This is the inequality behind the closed form with tied directions Z (whitened
+    coordinates, tied directions first).
+    """
+    n, z = sizes
+    g = np.random.default_rng(seed)
+    d = np.exp(g.uniform(-1.5, 1.5, n))
+    d[:z] = 1.0
+    lam = 1 / d
+    J0 = np.diag(np.minimum(1, lam))
+    A0, B0 = np.diag(np.maximum(0, 1 - lam)), np.diag(np.maximum(0, lam - 1))
+    a, b = g.standard_normal(n), g.standard_normal(n)
+    X = g.standard_normal((n, n)) * np.exp(g.uniform(-3, 1, (1, n)))
+    root = np.sqrt(J0)
+    N = root @ inv(np.eye(n) + inv(X @ X.T + 1e-9 * np.eye(n))) @ root
+    psi = cifilter.ei.decompose(A0 + N, B0 + N, J0 - N, a, b, lam, "sijs-lazar").psi
+    e = (a - b)[:z]
+    assert psi >= e @ np.linalg.solve(N[:z, :z], e) / 2 * (1 - 1e-7) - 1e-12
 
 
 def test_infeasible_problems_return_ei_and_say_so():
