@@ -148,9 +148,9 @@ class Decomposition(NamedTuple):
     """The split of eqs. (2)-(6) for a given common information ``J`` (whitened).
 
     ``A = I - J`` and ``B = diag(lam) - J`` are the independent informations of a and b,
-    ``m`` the mutual mean, ``eta_a = a - J m`` and ``eta_b = lam b - J m`` the independent
-    information vectors; ``x_a = A^-1 eta_a``, ``x_b = B^-1 eta_b`` are the independent
-    means of eq. (5) and ``x_s = (A + B)^-1 (eta_a + eta_b)``.
+    ``S = A + B``, ``m`` the mutual mean, ``eta_a = a - J m`` and ``eta_b = lam b - J m``
+    the independent information vectors; ``x_a = A^-1 eta_a``, ``x_b = B^-1 eta_b`` are the
+    independent means of eq. (5) and ``x_s = S^-1 (eta_a + eta_b)``.
     """
 
     S: np.ndarray
@@ -168,7 +168,9 @@ def _solve(M, v):
 
     ``v`` is (..., n) or (..., n, k). The callers guarantee positive definiteness, so
     LAPACK's batched solver is used directly (for n <= 6 it is faster than a Cholesky
-    factorisation followed by two triangular solves in a Python loop).
+    factorisation followed by two triangular solves in a Python loop). Solves rather than
+    explicit inverses: near a rank-deficient optimum ``A`` or ``B`` is nearly singular and
+    ``psi`` depends on the accuracy of ``A^-1 eta_a``.
     """
     vector = v.ndim == M.ndim - 1
     rhs = v[..., None] if vector else v
@@ -210,7 +212,9 @@ def decompose(A, B, J, a, b, lam, mutual_mean):
     Jm = np.einsum("...ij,...j->...i", J, m)
     eta_a, eta_b = a - Jm, lam * b - Jm
     s = eta_a + eta_b
-    x_a, x_b, x_s = _solve(A, eta_a), _solve(B, eta_b), _solve(S, s)
+    # A and B in one batched call
+    x_a, x_b = _solve(np.stack([A, B]), np.stack([eta_a, eta_b]))
+    x_s = _solve(S, s)
     psi = (np.einsum("...i,...i->...", eta_a, x_a) + np.einsum("...i,...i->...", eta_b, x_b)
            - np.einsum("...i,...i->...", s, x_s))
     return Decomposition(S, m, eta_a, eta_b, x_a, x_b, x_s, np.maximum(psi, 0.0))

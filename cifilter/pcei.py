@@ -143,12 +143,15 @@ class _Problem:
         basis, A, B, J = self.basis, self.A0 + N, self.B0 + N, self.J0 - N
         parts = decompose(A, B, J, self.a, self.b, self.lam, self.mutual_mean)
         m, x_a, x_b, x_s = parts.m, parts.x_a, parts.x_b, parts.x_s
-        # Explicit inverses: each is applied to q + 2 right-hand sides below, and one
-        # batched inverse plus matrix products is much faster than repeated solves.
-        S_inv, A_inv, B_inv = (symmetrize(np.linalg.inv(M)) for M in (parts.S, A, B))
+        # Explicit inverses for the derivatives: each is applied to q + 2 right-hand sides,
+        # and one batched call is much cheaper than repeated solves.
+        S_inv, A_inv, B_inv = symmetrize(np.linalg.inv(np.stack([parts.S, A, B])))
         k = self.a + self.b - 2.0 * m
         y = x_a + x_b - 2.0 * x_s
         z = np.einsum("...ij,...jk,...k->...i", S_inv, J, y)
+        # E_p applied to the five vectors needed below, in one call
+        E_k, E_ma, E_mb, E_ms, E_yz = np.moveaxis(basis.apply(np.stack(
+            [k, m - x_a, m - x_b, m - x_s, y + 2.0 * z], axis=-2)), -3, 0)
 
         def outer(u, v):
             return u[..., :, None] * v[..., None, :]
@@ -158,17 +161,18 @@ class _Problem:
         gradient = basis.coords(G)
         # Rows p of the arrays below are derivatives along E_p; for symmetric M,
         # (M^-1 v_p)^T = v_p^T M^-1, so "M^-1 applied to every row" is X @ M^-1.
-        dm = basis.apply(k) @ S_inv
+        dm = E_k @ S_inv
         J_dm = dm @ J
-        dx_a = (basis.apply(m - x_a) - J_dm) @ A_inv
-        dx_b = (basis.apply(m - x_b) - J_dm) @ B_inv
-        dx_s = 2.0 * (basis.apply(m - x_s) - J_dm) @ S_inv
+        dx_a = (E_ma - J_dm) @ A_inv
+        dx_b = (E_mb - J_dm) @ B_inv
+        dx_s = 2.0 * (E_ms - J_dm) @ S_inv
         dy = dx_a + dx_b - 2.0 * dx_s
-        dz = (dy @ J - basis.apply(y) - 2.0 * basis.apply(z)) @ S_inv
+        dz = (dy @ J - E_yz) @ S_inv
         # d<G, E_r> along E_p: every term is a coordinate of u_p v^T + v u_p^T, which is
         # 2 u_p . (E_r v); all seven terms in one batched product.
         left = np.concatenate([dm, dy, 2.0 * dm, -dz, -dx_a, -dx_b, 2.0 * dx_s], axis=-1)
-        right = np.concatenate([basis.apply(v) for v in (y, m, z, k, x_a, x_b, x_s)], axis=-1)
+        applied = basis.apply(np.stack([y, m, z, k, x_a, x_b, x_s], axis=-2))  # (..., 7, q, n)
+        right = np.concatenate(np.moveaxis(applied, -3, 0), axis=-1)
         hessian = 2.0 * left @ np.swapaxes(right, -1, -2)
         return parts.psi, gradient, symmetrize(hessian)
 
@@ -183,7 +187,8 @@ def _barrier(problem, N, t):
     """``t (-log det J) - log det N - log(-c)``, ``c = log(psi / gamma)``; inf outside."""
     with np.errstate(all="ignore"):
         c = problem.log_psi(N) - problem.log_gamma
-        value = -t * _logdet(problem.J0 - N) - _logdet(N) - np.log(-c)
+        log_J, log_N = _logdet(np.stack([problem.J0 - N, N]))
+        value = -t * log_J - log_N - np.log(-c)
     return np.where(np.isfinite(value) & (c < 0), value, np.inf)
 
 
