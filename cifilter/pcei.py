@@ -10,7 +10,7 @@ Eq. (19) minimises ``|S|``, which is degenerate for n > 1 (a rank-deficient ``S`
 ``|S| = 0``, and the optimal ``S S^T`` is often rank-deficient); the determinant of the
 resulting common covariance is minimised instead.
 
-The reduction used here (proved on the documentation page):
+The reduction used here (argued in detail on the documentation page):
 
 1. In the whitened coordinates of eq. (12) (``Pa = I``, ``Pb = diag(d)``) the problem has
    the same solution mapped by ``T``: determinant ratios and ``psi`` are invariant.
@@ -27,7 +27,9 @@ The reduction used here (proved on the documentation page):
    reported.
 3. Closed forms: if EI already satisfies the constraint the result is EI exactly; if
    the covariances are equal in every direction, ``N = e e^T / (2 gamma)`` (``e`` the
-   whitened mean difference) is optimal.
+   whitened mean difference) is optimal; with Sijs & Lazar's mean the same holds on the
+   tied directions for any tie pattern (resting on an inequality verified numerically,
+   not proved), so the default rule never iterates.
 """
 
 import numpy as np
@@ -40,6 +42,7 @@ from .ei import (
     _as_pair,
     _check_options,
     _check_two,
+    _solve,
     covariance_regularised_base,
     decompose,
     ei_in_whitened,
@@ -519,7 +522,7 @@ def _fuse_pc(w, J, A, B, mutual_mean, eps, closed, tie):
     if (~closed).any():
         general = np.flatnonzero(~closed)
         W_a, _ = mutual_mean_weights(A[general], B[general], mutual_mean)
-        R_a[general] = np.linalg.solve(A[general] + B[general], W_a)
+        R_a[general] = _solve(A[general] + B[general], W_a)
     if closed.any():
         sub = type(w)(*(field[closed] for field in w))
         ratio = np.where(tie[closed], 0.5, mean_ratio(sub, eps, mutual_mean))
@@ -584,9 +587,11 @@ def pc_ellipsoidal_intersection(xa, Pa, xb, Pb, alpha=0.05, *, eps=DEFAULT_EPS,
         constraint moved ``C_c``), ``feasible`` (a common covariance passing the test was
         found; if not, the result is EI's and the hypothesis of equal means is rejected),
         ``solver`` (``"ei"``, ``"closed-form"`` or ``"interior-point"``), ``iterations``,
-        ``converged``, ``kkt_residual`` (norm of the Lagrangian's gradient in whitened
-        coordinates), ``duality_gap``, ``starts`` (feasible starting points) and
-        ``starts_agree`` (how many of them reached the best value within 1e-7), ``alpha``.
+        ``converged`` (the barrier method finished with a KKT residual below 1e-3; if not,
+        the result is EI's), ``kkt_residual`` (relative KKT residual of the original
+        problem at the result, whitened coordinates), ``duality_gap`` (``(n + 1) / t``),
+        ``starts`` (feasible starting points) and ``starts_agree`` (how many of them
+        reached the best value within 1e-7), ``alpha``.
 
     Raises
     ------
@@ -606,11 +611,15 @@ def pc_ellipsoidal_intersection(xa, Pa, xb, Pb, alpha=0.05, *, eps=DEFAULT_EPS,
     ``S`` has ``|S| = 0`` and the optimal ``S S^T`` is often rank-deficient (for equal
     covariances it has rank one), so ``det C_c`` is minimised instead.
 
-    The problem is solved in the information ``J = C_c^-1`` of the common part, where the
-    objective ``-log det J`` is convex and ``C_c >= C_EI`` is the cone ``J <= J_EI``, by a
-    batched log-barrier method with exact Hessians, from up to three starts. The
-    constraint is not convex everywhere, so the result is a KKT point (reported) that the
-    starts agree on; no global certificate exists.
+    If EI already passes the test the result is EI's exactly. If the covariances are
+    equal in every direction, or with Sijs & Lazar's mean whenever some directions are
+    tied, the optimum has a closed form (a rank-one correction on the tied directions).
+    Otherwise (the printed mean, or the covariance regulariser) the problem is solved in
+    the information ``J = C_c^-1`` of the common part, where the objective ``-log det J``
+    is convex and ``C_c >= C_EI`` is the cone ``J <= J_EI``, by a batched log-barrier
+    method with exact Hessians, from up to three starts. The constraint is not convex
+    everywhere, so the result is a KKT point (reported) that the starts agree on; no
+    global certificate exists.
 
     Neither EI nor PC-EI is conservative: see the documentation page for how often their
     NEES exceeds the chi-square bound.
