@@ -9,6 +9,8 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
   (Ajgl et al. 2014), also as ``kf.fuse(other, horizon=k)``;
 * :func:`naive_fusion` (``"naive"``) and :func:`optimal_fusion` (``"optimal"``), the
   references for independent and for known correlations;
+* :func:`ellipsoidal_intersection` (``"ei"``) and :func:`pc_ellipsoidal_intersection`
+  (``"pcei"``), which estimate the common information (Sijs & Lazar; Naveen & Taylor);
 * :func:`bayesian_fusion` (``"bayes"``), the Monte Carlo MMSE fusion under a Wishart prior
   (Weng & Djurić), and its sampler :func:`sample_joint_covariances`;
 * every rule is reachable through :func:`fuse` and the registry
@@ -20,14 +22,18 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
 from . import ci as _ci  # noqa: F401  (registers "ci")
 from . import optimal as _optimal  # noqa: F401  (registers "naive", "optimal")
 from . import pci as _pci  # noqa: F401  (registers "pci")
+from . import ei as _ei  # noqa: F401  (registers "ei")
+from . import pcei as _pcei  # noqa: F401  (registers "pcei")
 from . import bayes as _bayes  # noqa: F401  (registers "bayes")
 from ._linalg import mahalanobis_sq
 from .bayes import bayesian_fusion, sample_joint_covariances
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
+from .ei import ellipsoidal_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
 from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
 from .optimal import naive_fusion, optimal_fusion
 from .pci import partial_ci
+from .pcei import pc_ellipsoidal_intersection
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
 
@@ -45,6 +51,7 @@ __all__ = [
     "bayesian_fusion",
     "ci_weights",
     "covariance_intersection",
+    "ellipsoidal_intersection",
     "fuse",
     "get_method",
     "horizon_study",
@@ -53,6 +60,7 @@ __all__ = [
     "optimal_fusion",
     "optimal_omega",
     "partial_ci",
+    "pc_ellipsoidal_intersection",
     "propagate_bound",
     "register_method",
     "sample_joint_covariances",
