@@ -5,12 +5,16 @@ loop over the batch. Inverses and solves go through the Cholesky factor, so the
 results are symmetric and positive definite by construction rather than by luck.
 """
 
+from typing import NamedTuple
+
 import numpy as np
 
 __all__ = [
+    "DiagonalisedPair",
     "cho_inverse",
     "cho_solve",
     "cholesky",
+    "diagonalise_pair",
     "logdet_from_cholesky",
     "lower_inverse",
     "mahalanobis_sq",
@@ -156,3 +160,25 @@ def mahalanobis_sq(e, P):
     L = np.broadcast_to(L, e.shape[:-1] + L.shape[-2:])
     z = solve_lower(L, e[..., None])[..., 0]
     return np.einsum("...i,...i->...", z, z)
+
+
+class DiagonalisedPair(NamedTuple):
+    """Simultaneous diagonalisation of two covariances: P_1 = T T^T, P_2 = T diag(lam) T^T."""
+
+    L1_inv: np.ndarray  # (..., n, n), inverse of the Cholesky factor of P_1
+    lam: np.ndarray  # (..., n), eigenvalues of L1^-1 P_2 L1^-T (ascending)
+    U: np.ndarray  # (..., n, n), its eigenvectors
+    T: np.ndarray  # (..., n, n), L1 U
+
+
+def diagonalise_pair(L1, P2):
+    """Diagonalise ``P_1 = L1 L1^T`` and ``P_2`` simultaneously (stacks of matrices).
+
+    With ``L1^-1 P_2 L1^-T = U diag(lam) U^T`` and ``T = L1 U``: ``P_1 = T T^T`` and
+    ``P_2 = T diag(lam) T^T``; ``lam`` are the generalised eigenvalues of ``(P_2, P_1)``.
+    Used by two-estimate CI (to reduce the weight to a scalar problem) and by EI.
+    """
+    L1_inv = lower_inverse(L1)
+    S = symmetrize(L1_inv @ P2 @ np.swapaxes(L1_inv, -1, -2))
+    lam, U = np.linalg.eigh(S)
+    return DiagonalisedPair(L1_inv, lam, U, L1 @ U)

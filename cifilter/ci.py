@@ -10,16 +10,14 @@ cross-covariance of the inputs. The weights are chosen by minimising a criterion
 ``P`` (trace, determinant or ``trace(W P)``) or by a fast non-iterative rule.
 """
 
-from typing import NamedTuple
-
 import numpy as np
 
 from ._information import information_matrices, weighted_information_fusion
 from ._linalg import (
     cho_inverse,
     cholesky,
+    diagonalise_pair,
     logdet_from_cholesky,
-    lower_inverse,
     symmetrize,
 )
 from ._optimize import minimize_convex_interval, minimize_convex_simplex
@@ -108,23 +106,6 @@ FAST_OMEGA_RULES = {
 
 
 # --------------------------------------------------------------------------- optimal weights
-class _DiagonalisedPair(NamedTuple):
-    """Simultaneous diagonalisation of two covariances: P_1 = T T^T, P_2 = T diag(lam) T^T."""
-
-    L1_inv: np.ndarray  # (..., n, n), inverse Cholesky factor of P_1
-    lam: np.ndarray  # (..., n), eigenvalues of L1^-1 P_2 L1^-T
-    U: np.ndarray  # (..., n, n), its eigenvectors
-    T: np.ndarray  # (..., n, n), L1 U
-
-
-def _diagonalise_pair(est):
-    L1 = est.L[..., 0, :, :]
-    L1_inv = lower_inverse(L1)
-    S = symmetrize(L1_inv @ est.P[..., 1, :, :] @ np.swapaxes(L1_inv, -1, -2))
-    lam, U = np.linalg.eigh(S)
-    return _DiagonalisedPair(L1_inv, lam, U, L1 @ U)
-
-
 def _two_estimate_weights(est, kind, W):
     """Exact criterion-optimal omega for N = 2 by simultaneous diagonalisation.
 
@@ -136,7 +117,7 @@ def _two_estimate_weights(est, kind, W):
     Returns the weights, iterations, convergence flags and the diagonalisation (from
     which the fused estimate is assembled without further inverses).
     """
-    pair = _diagonalise_pair(est)
+    pair = diagonalise_pair(est.L[..., 0, :, :], est.P[..., 1, :, :])
     n, size = est.dim, int(np.prod(est.batch_shape, dtype=int))
     a = (pair.lam - 1.0).reshape(size, n)
     if kind == "det":

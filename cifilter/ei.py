@@ -21,7 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._linalg import symmetrize
+from ._linalg import diagonalise_pair, symmetrize
 from ._validation import (
     Estimates,
     as_estimates,
@@ -31,7 +31,6 @@ from ._validation import (
     check_scalar,
     restore_style,
 )
-from .ci import _diagonalise_pair
 from .registry import register_method
 from .result import FusionResult
 
@@ -131,7 +130,7 @@ def whiten(est):
     ``T diag(max(d, 1)) T^T`` (``T`` is unique up to rotations inside eigenspaces of
     repeated ``d``, on which ``max(d, 1)`` is constant) and is cheaper.
     """
-    pair = _diagonalise_pair(est)
+    pair = diagonalise_pair(est.L[..., 0, :, :], est.P[..., 1, :, :])
     T_inv = np.swapaxes(pair.U, -1, -2) @ pair.L1_inv
     a = np.einsum("...ij,...j->...i", T_inv, est.x[..., 0, :])
     b = np.einsum("...ij,...j->...i", T_inv, est.x[..., 1, :])
