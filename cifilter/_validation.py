@@ -86,7 +86,9 @@ def check_covariances(P, name="Ps", L=None):
         raise ValueError(f"{name} must hold matrices of dimension n >= 1")
     check_finite(P, name)
     asymmetry = np.abs(P - np.swapaxes(P, -1, -2)).max(axis=(-2, -1))
-    scale = np.abs(P).max(axis=(-2, -1))
+    # The largest entry of a positive semidefinite matrix lies on its diagonal (and a
+    # matrix that is not PSD fails the Cholesky test below anyway).
+    scale = np.abs(np.diagonal(P, axis1=-2, axis2=-1)).max(axis=-1)
     bad = asymmetry > SYMMETRY_RTOL * scale
     if np.any(bad):
         index = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
@@ -186,7 +188,8 @@ def as_estimates(xs, Ps, *, min_count=2, names=("xs", "Ps")):
             f"batch shapes of {x_name} {x.shape[:-2]} and {P_name} {P.shape[:-3]} "
             "do not broadcast"
         ) from None
-    x = np.array(np.broadcast_to(x, batch + x.shape[-2:]))
+    if x.shape[:-2] != batch:  # x is already a private copy; only broadcasting copies again
+        x = np.array(np.broadcast_to(x, batch + x.shape[-2:]))
     if P.shape[:-3] != batch:
         P = np.array(np.broadcast_to(P, batch + P.shape[-3:]))
         L = np.array(np.broadcast_to(L, batch + L.shape[-3:]))
