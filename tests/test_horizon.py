@@ -570,6 +570,16 @@ def test_filter_fuse_with_horizon_and_several_estimates():
     (dict(horizon=-1), ValueError, "horizon must be >= 0"),
     (dict(horizon=2, future=dict(F=np.eye(3), Q=Q_DYN)), ValueError, "F must have shape"),
     (dict(horizon=2, criterion="max"), ValueError, "criterion"),
+    # partial-correlation CI (tests/test_horizon_pci.py)
+    (dict(method="pci", horizon=2), ValueError, "needs a correlation coefficient bound"),
+    (dict(method="pci", rho=0.5, delta=[0.5, 0.5], horizon=2), ValueError, "give one"),
+    (dict(method="pci", rho=0.5, horizon=2, tol=1e-3), TypeError, "accepts the option"),
+    (dict(method="pci", rho=1.5, horizon=2), ValueError, "rho must lie"),
+    (dict(method="pci", rho=[0.1, 0.2, 0.3], horizon=2), ValueError, "rho must be a scalar"),
+    (dict(method="pci", rho=0.5, horizon=2, criterion="max"), ValueError, "criterion"),
+    (dict(method="pci", rho=0.5, horizon=-1), ValueError, "horizon must be >= 0"),
+    (dict(method="pci", rho=0.5, future=dict(F=F_DYN, Q=Q_DYN)), ValueError, "give horizon="),
+    (dict(method="naive", horizon=2), ValueError, "needs method='ci' .or 'pci'"),
 ])
 def test_filter_fuse_with_horizon_is_atomic_on_bad_input(kwargs, error, match):
     kf = dynamic_filter("A")
