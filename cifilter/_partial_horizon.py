@@ -32,7 +32,11 @@ Derivatives, with ``X = S^-1``, are taken in ``w`` and chained through
   ``delta_0 = 1/N``, computed as ``sum_k log1p(e lam_k) / e`` from the eigenvalues ``lam_k`` of
   ``L_0^-1 Psi (X - X_0) Psi^T L_0^-T`` (``Z(delta_0) = L_0 L_0^T``) with
   ``X - X_0 = X (sum_i (w_0i - w_i) I_i) X_0``, which keeps its relative accuracy at every
-  horizon, and its gradient and Hessian divided by ``exp(2 s)`` alike.
+  horizon, and its gradient and Hessian divided by ``exp(2 s)`` alike. The constant
+  ``tr(Z_0^-1 Psi X_0 Psi^T)`` is added to it: the scale of its rounding errors, which the
+  solver's test "decrease below the rounding level of ``f``" needs to see (a difference
+  near zero would hide it, and the solver would run to its iteration limit at optima it
+  cannot certify by a decrease).
 """
 
 import numpy as np
@@ -93,13 +97,17 @@ def _log1p_ratio(x):
 
 
 def _det_problem(informations, terms, rho):
-    """``f(delta) = (log det Z(delta) - log det Z(1/N)) / exp(2 s)`` and its derivatives."""
+    """``f(delta) = (log det Z(delta) - log det Z(1/N)) / exp(2 s) + const``, derivatives."""
     count = informations.shape[-3]
     scale = np.exp(2.0 * terms.log_scale)
     Psi, Psi_T = terms.Psi, np.swapaxes(terms.Psi, -1, -2)
     reference = np.full(informations.shape[:-3] + (count,), 1.0 / count)
     w_0, X_0 = _fused_inverse(reference, rho, informations, terms.Gamma)
     L_0 = cholesky(propagated_bound(terms, X_0), "propagated bound")
+    # The objective is a difference; its rounding errors scale like this (divided by exp(2 s))
+    # log det Z_0, not like the difference itself. Added as a constant, it tells the solver's
+    # rounding test (relative to |f|) the level below which decreases cannot be resolved.
+    level = np.trace(cho_solve(L_0, Psi @ X_0 @ Psi_T), axis1=-2, axis2=-1)
 
     def value(delta):
         w, X = _fused_inverse(delta, rho, informations, terms.Gamma)
@@ -107,7 +115,7 @@ def _det_problem(informations, terms, rho):
         D = solve_lower(L_0, Psi @ symmetrize(change) @ Psi_T)
         D = solve_lower(L_0, np.swapaxes(D, -1, -2))  # L_0^-1 Psi (X - X_0) Psi^T L_0^-T
         lam = np.linalg.eigvalsh(symmetrize(D))
-        return (lam * _log1p_ratio(scale[..., None] * lam)).sum(axis=-1), X
+        return level + (lam * _log1p_ratio(scale[..., None] * lam)).sum(axis=-1), X
 
     def objective(delta):
         return value(delta)[0]
