@@ -157,6 +157,10 @@ def _simplex_det_weights(S, terms):
     """
     count = S.shape[-3]
     weight = np.exp(2.0 * terms.log_scale)[..., None, None]
+    # log det from a Cholesky factor has rounding errors of order n eps whatever its value;
+    # the constant n tells the solver's rounding test (relative to |f|) that level, which it
+    # would not see where det P_kappa is near 1 (it then ran to its iteration limit).
+    level = float(S.shape[-1])
 
     def fused(w):
         L = cholesky(symmetrize(np.einsum("...k,...kij->...ij", w, S)), "fused information")
@@ -165,11 +169,11 @@ def _simplex_det_weights(S, terms):
         return S_inv, LZ
 
     def objective(w):
-        return 2.0 * np.log(np.diagonal(fused(w)[1], axis1=-2, axis2=-1)).sum(axis=-1)
+        return level + 2.0 * np.log(np.diagonal(fused(w)[1], axis1=-2, axis2=-1)).sum(axis=-1)
 
     def evaluate(w):
         S_inv, LZ = fused(w)
-        f = 2.0 * np.log(np.diagonal(LZ, axis1=-2, axis2=-1)).sum(axis=-1)
+        f = level + 2.0 * np.log(np.diagonal(LZ, axis1=-2, axis2=-1)).sum(axis=-1)
         C = weight * (np.swapaxes(terms.Psi, -1, -2) @ cho_solve(LZ, terms.Psi))
         A = S_inv[..., None, :, :] @ S
         Mi = C[..., None, :, :] @ A @ S_inv[..., None, :, :]
