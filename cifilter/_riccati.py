@@ -14,7 +14,7 @@ from ._linalg import cho_solve, cholesky, solve_lower, symmetrize
 from ._validation import SYMMETRY_RTOL, as_float_array, check_covariances, check_finite
 
 __all__ = ["Model", "Terms", "as_matrix", "as_model", "broadcast_terms", "check_steps_available",
-           "horizon_terms", "predict", "riccati", "update"]
+           "horizon_terms", "predict", "propagated_bound", "riccati", "update"]
 
 
 # --------------------------------------------------------------------------- the model
@@ -206,6 +206,13 @@ def horizon_terms(model, horizon, n, collect=None):
             P_c, Gamma, Psi = (np.broadcast_to(M, batch + (n, n)) for M in (P_c, Gamma, Psi))
             log_scale = np.broadcast_to(log_scale, batch)
     return found if collect is not None else found[0]
+
+
+def propagated_bound(terms, S_inverse):
+    """(*) for an initial information ``S - Gamma``: P_c + exp(2 s) Psi S^-1 Psi^T."""
+    weight = np.exp(2.0 * terms.log_scale)[..., None, None]
+    return symmetrize(terms.P_c + weight * (terms.Psi @ S_inverse
+                                            @ np.swapaxes(terms.Psi, -1, -2)))
 
 
 def broadcast_terms(terms, batch):

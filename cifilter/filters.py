@@ -73,40 +73,52 @@ def _future_model(filt, future):
 
 
 def _fuse_for_horizon(filt, estimates, method, horizon, future, options):
-    """CI with the weights chosen for ``horizon`` steps of the filter's (or ``future``) model."""
+    """CI or partial CI with the weights chosen for ``horizon`` steps of the filter's model."""
     from .horizon import horizon_weights  # only filters that look ahead need it
 
     if horizon is None:
         raise ValueError("future= describes the steps after the fusion; give horizon= too")
-    if method != "ci":
-        raise ValueError(f"horizon= chooses Covariance Intersection weights and needs "
-                         f"method='ci', got method={method!r}")
-    if "omega" in options:
-        raise ValueError("omega= fixes the weights and horizon= chooses them; give one")
-    unknown = sorted(set(options) - {"criterion"})
+    if method not in ("ci", "pci"):
+        raise ValueError(f"horizon= chooses the weights of Covariance Intersection and needs "
+                         f"method='ci' (or 'pci' for partial-correlation CI), got "
+                         f"method={method!r}")
+    fixed, accepted = ("omega", {"criterion"}) if method == "ci" else ("delta",
+                                                                       {"criterion", "rho"})
+    if fixed in options:
+        raise ValueError(f"{fixed}= fixes the weights and horizon= chooses them; give one")
+    unknown = sorted(set(options) - accepted)
     if unknown:
-        raise TypeError(f"method 'ci' with horizon= accepts the option 'criterion', got "
+        raise TypeError(f"method {method!r} with horizon= accepts the option(s) "
+                        f"{', '.join(map(repr, sorted(accepted)))}, got "
                         f"{', '.join(map(repr, unknown))}")
+    if method == "pci" and options.get("rho") is None:
+        raise ValueError("the 'pci' rule needs a correlation coefficient bound: "
+                         "fuse(..., method='pci', rho=..., horizon=...)")
     criterion = options.get("criterion", "trace")
+    rho = options.get("rho")
     model = _future_model(filt, future)
     pairs = [_split_estimate(item, i) for i, item in enumerate(estimates)]
     stacked = as_estimates([pair[0] for pair in pairs], [pair[1] for pair in pairs],
                            names=("estimates' x", "estimates' P"))
     choice = horizon_weights(stacked.P, model["F"], model["Q"], model["H"], model["R"], horizon,
-                             criterion=criterion, G=model.get("G"))
-    result = _fuse(estimates, method="ci", criterion=criterion, omega=choice.omega)
+                             criterion=criterion, G=model.get("G"), rho=rho)
+    if method == "ci":
+        result = _fuse(estimates, method="ci", criterion=criterion, omega=choice.omega)
+    else:
+        result = _fuse(estimates, method="pci", rho=rho, delta=choice.omega)
     info = dict(result.info)
-    info.update(
-        rule="horizon",
-        horizon=choice.info["horizon"],
-        horizon_value=choice.value,
-        horizon_value_recursive=choice.info["value_recursive"],
-        omega_recursive=choice.info["omega_recursive"],
-        model="future" if future is not None else "filter",
-        iterations=choice.info["iterations"],
-        converged=choice.info["converged"],
-        solver=choice.info["solver"],
-    )
+    info.update({
+        "rule": "horizon",
+        "criterion": choice.info["criterion"],
+        "horizon": choice.info["horizon"],
+        "horizon_value": choice.value,
+        "horizon_value_recursive": choice.info["value_recursive"],
+        f"{fixed}_recursive": choice.info["omega_recursive"],
+        "model": "future" if future is not None else "filter",
+        "iterations": choice.info["iterations"],
+        "converged": choice.info["converged"],
+        "solver": choice.info["solver"],
+    })
     return result.replace(info=info)
 
 
@@ -151,14 +163,19 @@ class FusionMixin:
             A registered fusion rule (see :func:`cifilter.available_methods`), default
             ``"ci"``.
         horizon : int, optional
-            Only for ``method="ci"``: choose the weights that minimise the criterion of the
-            bound ``horizon`` predict/update steps after the fusion (the batch approach of
-            Ajgl et al. 2014, :func:`cifilter.horizon.horizon_weights`), using the filter's
-            own ``F``, ``Q``, ``H``, ``R`` or the ``future`` model. ``horizon=0`` is ordinary
-            CI. The choice is recorded in ``last_fusion.info`` (``rule="horizon"``,
+            Only for ``method="ci"`` and ``method="pci"``: choose the weights that minimise
+            the criterion (option ``criterion``: ``"trace"``, ``"det"`` or a weight matrix)
+            of the bound ``horizon`` predict/update steps after the fusion (the batch
+            approach of Ajgl et al. 2014, :func:`cifilter.horizon.horizon_weights`), using
+            the filter's own ``F``, ``Q``, ``H``, ``R`` or the ``future`` model. With
+            ``"pci"`` (and its option ``rho``) the chosen ``delta`` of Wu, Cai & Fu (2018)
+            is applied by :func:`cifilter.partial_ci`. ``horizon=0`` is the ordinary rule
+            (for ``"pci"`` with ``criterion="trace"``, its trace-optimal ``delta``). The
+            choice is recorded in ``last_fusion.info`` (``rule="horizon"``, ``criterion``,
             ``horizon``, ``horizon_value`` and, for comparison, ``horizon_value_recursive``
-            and ``omega_recursive``: the criterion at the horizon with the weights that are
-            optimal now, and those weights).
+            and ``omega_recursive`` (``"ci"``) or ``delta_recursive`` (``"pci"``): the
+            criterion at the horizon with the weights that are optimal now, and those
+            weights).
         future : mapping or object, optional
             The model of the steps after the fusion, instead of the filter's own: a mapping
             or an object (such as another ``KalmanFilter``) with ``F`` and ``Q`` and
@@ -181,7 +198,8 @@ class FusionMixin:
         ValueError
             Dimension mismatch, non-finite values, a covariance that is not symmetric
             positive definite, batched inputs, or a bad option value; ``horizon`` with a
-            method other than ``"ci"`` or together with ``omega``, ``future`` without
+            method other than ``"ci"`` and ``"pci"`` or together with ``omega`` (``"ci"``)
+            or ``delta`` (``"pci"``), ``"pci"`` without ``rho``, ``future`` without
             ``horizon``, a filter without a linear model and no ``future``.
 
         Examples
@@ -200,6 +218,13 @@ class FusionMixin:
         >>> result = kf.fuse((np.ones(2), np.diag([4.0, 1.0])), horizon=10)
         >>> result.info["rule"], result.info["horizon"]
         ('horizon', 10)
+
+        The same with partial-correlation CI for a correlation coefficient bound of 0.5:
+
+        >>> result = kf.fuse((np.ones(2), np.diag([4.0, 1.0])), method="pci", rho=0.5,
+        ...                  horizon=10)
+        >>> result.method, result.info["rule"], bool(result.info["converged"])
+        ('pci', 'horizon', True)
         """
         estimates = [(self.x, self.P)] + _as_estimate_list(other)
         if horizon is not None or future is not None:

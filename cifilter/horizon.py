@@ -8,6 +8,12 @@ approach, their Fig. 1) is the Kalman filter started from the CI bound (eqs. 16,
 omega is then chosen to minimise a criterion of that propagated bound. The *recursive*
 approach (their Fig. 2) fixes omega at ``kappa = 0`` and filters on.
 
+With ``rho=`` the same is done for partial-correlation CI (Wu, Cai & Fu 2018): the
+block-diagonal bound of the joint covariance is ``blockdiag(P_i / w_i(delta))`` with eq. (24),
+``w_i(delta) = delta_i / (rho_i + (1 - rho_i) delta_i)`` (Lemma 7), and ``delta`` on the simplex
+is chosen for the horizon (:mod:`cifilter._partial_horizon`; the convexity proof is on the
+documentation page ``docs/methods/horizon.rst``).
+
 How the minimisation works (and why it is global)
 --------------------------------------------------
 Run the local filter's Riccati recursion once from ``P = 0`` (the initial state known
@@ -56,6 +62,7 @@ from scipy import linalg as sla
 
 from ._linalg import cho_inverse, cho_solve, cholesky, lower_inverse, symmetrize
 from ._optimize import minimize_convex_interval, minimize_convex_simplex
+from ._partial_horizon import information_bound, partial_horizon_delta
 from ._riccati import (
     Terms,
     as_matrix,
@@ -63,11 +70,13 @@ from ._riccati import (
     broadcast_terms,
     check_steps_available,
     horizon_terms,
+    propagated_bound,
     riccati,
     update,
 )
 from ._validation import as_covariances, as_float_array, check_covariances, check_int
 from .ci import _criterion_value, _parse_criterion, ci_weights
+from .pci import _check_rho, _effective_rho, _partial_weights
 
 __all__ = [
     "HorizonOmega",
@@ -86,13 +95,6 @@ def _informations(Ps, Gamma):
     est = as_covariances(Ps, name="Ps")
     informations = cho_inverse(est.L)
     return est, symmetrize(informations + Gamma[..., None, :, :])
-
-
-def _bound(terms, S_inverse):
-    """P_c + exp(2 s) Psi S^-1 Psi^T."""
-    weight = np.exp(2.0 * terms.log_scale)[..., None, None]
-    return symmetrize(terms.P_c + weight * (terms.Psi @ S_inverse
-                                            @ np.swapaxes(terms.Psi, -1, -2)))
 
 
 def _pair_weights(S, terms, kind, W):
@@ -155,19 +157,23 @@ def _simplex_det_weights(S, terms):
     """
     count = S.shape[-3]
     weight = np.exp(2.0 * terms.log_scale)[..., None, None]
+    # log det from a Cholesky factor has rounding errors of order n eps whatever its value;
+    # the constant n tells the solver's rounding test (relative to |f|) that level, which it
+    # would not see where det P_kappa is near 1 (it then ran to its iteration limit).
+    level = float(S.shape[-1])
 
     def fused(w):
         L = cholesky(symmetrize(np.einsum("...k,...kij->...ij", w, S)), "fused information")
         S_inv = cho_inverse(L)
-        LZ = cholesky(_bound(terms, S_inv), "propagated bound")
+        LZ = cholesky(propagated_bound(terms, S_inv), "propagated bound")
         return S_inv, LZ
 
     def objective(w):
-        return 2.0 * np.log(np.diagonal(fused(w)[1], axis1=-2, axis2=-1)).sum(axis=-1)
+        return level + 2.0 * np.log(np.diagonal(fused(w)[1], axis1=-2, axis2=-1)).sum(axis=-1)
 
     def evaluate(w):
         S_inv, LZ = fused(w)
-        f = 2.0 * np.log(np.diagonal(LZ, axis1=-2, axis2=-1)).sum(axis=-1)
+        f = level + 2.0 * np.log(np.diagonal(LZ, axis1=-2, axis2=-1)).sum(axis=-1)
         C = weight * (np.swapaxes(terms.Psi, -1, -2) @ cho_solve(LZ, terms.Psi))
         A = S_inv[..., None, :, :] @ S
         Mi = C[..., None, :, :] @ A @ S_inv[..., None, :, :]
@@ -186,8 +192,13 @@ def _zero_to_identity(W):
     return np.where(size > 0, W / np.where(size > 0, size, 1.0), np.eye(W.shape[-1]))
 
 
-def _optimal_weights(Ps, terms, kind, W):
-    """Criterion-optimal weights (..., N) for the bound at the horizon described by ``terms``."""
+def _optimal_weights(Ps, terms, kind, W, rho=None):
+    """Criterion-optimal weights (..., N) for the bound at the horizon described by ``terms``.
+
+    With ``rho`` (..., N) the weights are partial CI's ``delta`` (eq. 24 of Wu et al.).
+    """
+    if rho is not None:
+        return _optimal_partial(Ps, terms, kind, W, rho)
     est, S = _informations(Ps, terms.Gamma)
     batch = np.broadcast_shapes(S.shape[:-3], terms.P_c.shape[:-2], terms.log_scale.shape,
                                 () if W is None else W.shape[:-2])
@@ -211,10 +222,30 @@ def _optimal_weights(Ps, terms, kind, W):
     return weights, {"iterations": iterations, "converged": converged, "solver": solver}
 
 
-def _fused_bound(Ps, terms, weights):
+def _optimal_partial(Ps, terms, kind, W, rho):
+    """Horizon-optimal ``delta`` of partial CI (module :mod:`cifilter._partial_horizon`)."""
+    est = as_covariances(Ps, name="Ps")
+    informations = cho_inverse(est.L)
+    batch = np.broadcast_shapes(informations.shape[:-3], terms.P_c.shape[:-2],
+                                terms.log_scale.shape, rho.shape[:-1],
+                                () if W is None else W.shape[:-2])
+    informations = np.broadcast_to(informations, batch + informations.shape[-3:])
+    rho = np.broadcast_to(rho, batch + rho.shape[-1:])
+    terms = broadcast_terms(terms, batch)
+    weight = None if kind == "det" else np.eye(est.dim) if kind == "trace" else W
+    delta, iterations, converged, gap = partial_horizon_delta(informations, terms, rho, weight)
+    return delta, {"iterations": iterations, "converged": converged, "solver": "simplex",
+                   "gap": gap}
+
+
+def _fused_bound(Ps, terms, weights, rho=None):
+    """The propagated bound for CI weights, or for partial CI's ``delta`` given ``rho``."""
+    if rho is not None:
+        informations = cho_inverse(as_covariances(Ps, name="Ps").L)
+        return information_bound(informations, terms, _partial_weights(weights, rho))
     _, S = _informations(Ps, terms.Gamma)
     S_w = symmetrize(np.einsum("...k,...kij->...ij", weights, S))
-    return _bound(terms, cho_inverse(cholesky(S_w, "fused information")))
+    return propagated_bound(terms, cho_inverse(cholesky(S_w, "fused information")))
 
 
 # --------------------------------------------------------------------------- public API
@@ -305,7 +336,9 @@ class HorizonOmega:
     ----------
     omega : ndarray, shape (...) or (..., N)
         The weight of the first estimate (:func:`optimal_omega`) or the weights of all N
-        estimates (:func:`horizon_weights`).
+        estimates (:func:`horizon_weights`). With ``rho`` (partial CI) these are
+        ``delta`` (the simplex variable of eq. (24) of Wu, Cai & Fu 2018; ``delta = omega``
+        for ``rho = 1``).
     value : ndarray, shape (...)
         The criterion of the propagated bound at the horizon with these weights (the
         determinant for ``"det"``).
@@ -314,7 +347,11 @@ class HorizonOmega:
     info : dict
         ``horizon``, ``criterion``, ``omega_recursive`` and ``value_recursive`` (the weights
         of the recursive approach, optimal at horizon 0, and the criterion they give at the
-        horizon), ``iterations``, ``converged`` and ``solver``.
+        horizon), ``iterations``, ``converged`` and ``solver``. With ``rho`` also ``rho``
+        (..., N) the bounds used (``sqrt(rho_1 rho_2)`` twice for a pair), ``weights``
+        (..., N) the information weights ``w_i`` of eq. (24) (they do not sum to one) and
+        ``gap``, a certified bound on the relative excess of the criterion over its
+        minimum.
 
     Examples
     --------
@@ -337,22 +374,41 @@ class HorizonOmega:
                 f"horizon={self.info.get('horizon')})")
 
 
-def _choose(Ps, model, horizon, criterion, n):
+def _choose(Ps, model, horizon, criterion, n, rho=None):
     """Horizon-optimal weights, value and bound, and the recursive approach's for comparison."""
     kind, W = _parse_criterion(criterion, n)
     check_steps_available(model, horizon)
     terms_list = horizon_terms(model, horizon, n, collect=sorted({0, horizon}))
     start, terms = terms_list[0], terms_list[-1]
-    weights, info = _optimal_weights(Ps, terms, kind, W)
-    recursive, _ = _optimal_weights(Ps, start, kind, W)
-    P = _fused_bound(Ps, terms, weights)
-    P_recursive = _fused_bound(Ps, terms, recursive)
+    weights, info = _optimal_weights(Ps, terms, kind, W, rho)
+    recursive, _ = _optimal_weights(Ps, start, kind, W, rho)
+    P = _fused_bound(Ps, terms, weights, rho)
+    P_recursive = _fused_bound(Ps, terms, recursive, rho)
     info.update(horizon=horizon, criterion=kind, omega_recursive=recursive,
                 value_recursive=_criterion_value(P_recursive, kind, W))
+    if rho is not None:
+        info.update(rho=np.broadcast_to(rho, weights.shape).copy(),
+                    weights=_partial_weights(weights, rho))
     return weights, _criterion_value(P, kind, W), P, info
 
 
-def optimal_omega(PA, PB, F, Q, H, R, horizon, criterion="trace", G=None):
+def _as_rho(rho, count, batch_shape):
+    """Validated bounds (..., N) as partial CI uses them (eq. 24; pairs: sqrt(rho_1 rho_2))."""
+    if rho is None:
+        return None
+    try:
+        lead = np.shape(rho)[:-1]
+    except ValueError:  # ragged: let the validation name it
+        lead = ()
+    try:
+        batch_shape = np.broadcast_shapes(batch_shape, lead)
+    except ValueError:
+        raise ValueError(f"rho of shape {np.shape(rho)} does not broadcast against the batch "
+                         f"shape {batch_shape} of the covariances") from None
+    return _effective_rho(_check_rho(rho, count, batch_shape))
+
+
+def optimal_omega(PA, PB, F, Q, H, R, horizon, criterion="trace", G=None, *, rho=None):
     """The CI weight that minimises the bound ``horizon`` filter steps after the fusion.
 
     The batch approach of Ajgl et al. (2014): the CI bound
@@ -371,6 +427,13 @@ def optimal_omega(PA, PB, F, Q, H, R, horizon, criterion="trace", G=None):
         The horizon ``kappa >= 0`` whose bound is minimised.
     criterion : {"trace", "det"} or array_like, shape (n, n), optional
         ``trace(P)``, ``det(P)`` or ``trace(W P)`` of the propagated bound.
+    rho : float or array_like, shape (..., 2) or (..., 1), optional
+        Correlation coefficient bound(s) of partial CI (Wu, Cai & Fu 2018), as for
+        :func:`cifilter.partial_ci` (per-estimate bounds of a pair act through
+        ``sqrt(rho_1 rho_2)``). Then the bound at the fusion time is eq. (33),
+        ``(w_A P_A^-1 + w_B P_B^-1)^-1`` with the weights (24) of ``delta = (omega,
+        1 - omega)``, and ``omega`` is the horizon-optimal ``delta_1``; apply it with
+        ``partial_ci(..., rho, delta=...)``. None (default): Covariance Intersection.
 
     Returns
     -------
@@ -400,11 +463,19 @@ def optimal_omega(PA, PB, F, Q, H, R, horizon, criterion="trace", G=None):
     conditions certify global optimality. The test suite compares the result with dense
     grids on random systems. Batched over leading axes of all inputs.
 
+    With ``rho`` the bound is ``P_c + Psi S(delta)^-1 Psi^T`` with
+    ``S(delta) = sum_i w_i(delta) P_i^-1 + Gamma``; it is convex in ``delta`` as well
+    (``w_i`` is concave, ``S`` matrix concave and the criteria convex and non-increasing in
+    ``S``), and it is minimised by the active-set Newton method on the simplex with exact
+    gradients and Hessians (see :func:`horizon_weights`).
+
     References
     ----------
     .. [1] J. Ajgl, M. Šimandl, M. Reinhardt, B. Noack and U. D. Hanebeck, "Covariance
        intersection in state estimation of dynamical systems", FUSION 2014, Sec. III,
        eqs. (13)-(16), (31)-(34), Figs. 3 and 6.
+    .. [2] J. Wu, Q. Cai and M. Fu, "Covariance intersection for partially correlated
+       random vectors", IEEE TAC 63(3), 2018, Lemma 7, eqs. (24), (33) (with ``rho``).
 
     Examples
     --------
@@ -420,11 +491,18 @@ def optimal_omega(PA, PB, F, Q, H, R, horizon, criterion="trace", G=None):
     0.6
     >>> round(float(optimal_omega(PA, PB, F, Q, HA, 1.0, 50, "det").omega), 4)
     0.0418
+
+    With a correlation coefficient bound of 0.5 (partial CI), ``delta_1`` moves less:
+
+    >>> [round(float(optimal_omega(PA, PB, F, Q, HA, 1.0, k, "det", rho=0.5).omega), 4)
+    ...  for k in (0, 50)]
+    [0.5511, 0.2666]
     """
     horizon = check_int(horizon, "horizon", low=0)
     Ps = _pair(PA, PB)
+    rho = _as_rho(rho, 2, Ps.shape[:-3])
     model = as_model(F, Q, H, R, G, Ps.shape[-1])
-    weights, value, P, info = _choose(Ps, model, horizon, criterion, Ps.shape[-1])
+    weights, value, P, info = _choose(Ps, model, horizon, criterion, Ps.shape[-1], rho)
     info["omega_recursive"] = info["omega_recursive"][..., 0]
     return HorizonOmega(weights[..., 0], value, P, info)
 
@@ -443,7 +521,7 @@ def _pair(PA, PB):
                     axis=-3)
 
 
-def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None):
+def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None, *, rho=None):
     """Horizon-optimal CI weights of N estimates (the generalisation of :func:`optimal_omega`).
 
     The CI bound ``(sum_i w_i P_i^-1)^-1`` is carried through ``horizon`` filter steps and
@@ -459,12 +537,17 @@ def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None):
         The horizon ``kappa >= 0``.
     criterion : {"trace", "det"} or array_like, shape (n, n), optional
         What to minimise.
+    rho : float or array_like, shape (..., N) or (..., 1), optional
+        Correlation coefficient bound(s) of partial CI (Wu, Cai & Fu 2018), as for
+        :func:`cifilter.partial_ci`: the fused bound is eq. (33) with the weights (24) of
+        ``delta`` and ``omega`` is the horizon-optimal ``delta``; apply it with
+        ``partial_ci(..., rho, delta=omega)``. None (default): Covariance Intersection.
 
     Returns
     -------
     HorizonOmega
         ``omega`` of shape (..., N), ``value``, ``P`` and ``info`` (``omega_recursive`` is
-        then (..., N) as well).
+        then (..., N) as well; with ``rho`` also ``rho``, ``weights`` and ``gap``).
 
     Raises
     ------
@@ -482,11 +565,28 @@ def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None):
     method on the simplex uses the closed-form gradient and Hessian of ``log det P_kappa``.
     N = 2 goes to the interval solver of :func:`optimal_omega`.
 
+    With ``rho``, ``S(delta) = sum_i w_i(delta) P_i^-1 + Gamma`` (the weights (24) do not sum
+    to one, so this information form replaces ``sum_i w_i S_i``). The criterion is convex in
+    ``delta`` for every ``rho`` in [0, 1] (proof on the documentation page) and the
+    active-set Newton method on the simplex minimises it, for every N, with the gradient and
+    Hessian in ``w`` chained through ``w_i' = rho_i / b_i^2`` and
+    ``w_i'' = -2 rho_i (1 - rho_i) / b_i^3`` (``b_i = rho_i + (1 - rho_i) delta_i``); optima on
+    faces (``delta_i = 0``) are exact. ``info["gap"]`` certifies the result from convexity.
+    Positive bounds below 1e-8 are raised to 1e-8 for the iterations only (the curvature
+    grows like ``rho_i^-2`` near ``delta_i = 0``); the bound is always that of the true
+    ``rho``, and ``gap`` states how far from its optimum the ``delta`` can be. ``rho_i = 0``
+    means ``w_i = 1`` whatever ``delta_i``: such an input gets ``delta_i = 0`` when others
+    are correlated, and with ``rho = 0`` throughout every ``delta`` is optimal and the start
+    ``1/N`` is kept. ``rho = 1`` is the CI problem.
+
     References
     ----------
     .. [1] J. Ajgl, M. Šimandl, M. Reinhardt, B. Noack and U. D. Hanebeck, "Covariance
        intersection in state estimation of dynamical systems", FUSION 2014 (two estimates;
        the N-estimate form is this package's generalisation).
+    .. [2] J. Wu, Q. Cai and M. Fu, "Covariance intersection for partially correlated
+       random vectors", IEEE TAC 63(3), 2018, Lemma 7, eqs. (24), (33), (34) (with ``rho``;
+       the horizon-aware choice of ``delta`` is this package's generalisation).
 
     Examples
     --------
@@ -496,11 +596,20 @@ def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None):
     >>> r = horizon_weights(Ps, np.eye(2), 0.0, np.eye(2), np.diag([1.0, 2.0]), horizon=1)
     >>> r.omega.round(4).tolist()
     [0.0, 1.0, 0.0]
+
+    Partial CI with bounds 0.3, 0.3 and 0 (the third estimate is uncorrelated, so its
+    weight is 1 and it needs no ``delta``):
+
+    >>> r = horizon_weights(Ps, np.eye(2), 0.0, np.eye(2), np.diag([1.0, 2.0]), horizon=1,
+    ...                     rho=[0.3, 0.3, 0.0])
+    >>> r.omega.round(4).tolist(), r.info["weights"].round(4).tolist()
+    ([0.4713, 0.5287, 0.0], [0.7482, 0.789, 1.0])
     """
     horizon = check_int(horizon, "horizon", low=0)
     est = as_covariances(Ps, name="Ps")
+    rho = _as_rho(rho, est.count, est.batch_shape)
     model = as_model(F, Q, H, R, G, est.dim)
-    weights, value, P, info = _choose(est.P, model, horizon, criterion, est.dim)
+    weights, value, P, info = _choose(est.P, model, horizon, criterion, est.dim, rho)
     return HorizonOmega(weights, value, P, info)
 
 
@@ -616,6 +725,9 @@ class HorizonStudy:
     omega_limit : ndarray, shape (...)
         The limit of the batch-optimal omega as the horizon grows (NaN if it has none, for
         instance when the closed loop's dominant mode rotates, or for per-step models).
+    rho : ndarray, shape (..., 2), or None
+        The correlation coefficient bounds of partial CI as used (``sqrt(rho_A rho_B)``
+        twice), or None for CI; with ``rho`` the omega fields hold ``delta_1``.
 
     Examples
     --------
@@ -639,6 +751,7 @@ class HorizonStudy:
     steady_P: Optional[np.ndarray]
     steady_value: Optional[np.ndarray]
     omega_limit: np.ndarray
+    rho: Optional[np.ndarray] = None
 
     def __repr__(self):
         return (f"HorizonStudy(criterion={self.criterion!r}, horizons {self.horizons[0]}.."
@@ -694,7 +807,8 @@ class HorizonStudy:
         if np.isfinite(self.omega_limit):
             ax_omega.axhline(float(self.omega_limit), ls=":", color="k",
                              label=f"{prefix}limit")
-        ax_omega.set(xlabel="horizon $\\kappa$", ylabel="$\\omega$", ylim=(-0.02, 1.02))
+        weight = "$\\omega$" if self.rho is None else "$\\delta_1$ (partial CI)"
+        ax_omega.set(xlabel="horizon $\\kappa$", ylabel=weight, ylim=(-0.02, 1.02))
         ax_value.plot(self.horizons, self.batch, "-", label=f"{prefix}batch")
         ax_value.plot(self.horizons, self.recursive, "--", label=f"{prefix}recursive")
         if self.steady_value is not None:
@@ -729,7 +843,8 @@ def _stack_terms(terms_list):
 _LIMIT_HORIZONS = (200, 400)
 
 
-def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, limit=True):
+def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, limit=True,
+                  rho=None):
     """Batch versus recursive Covariance Intersection for a range of horizons.
 
     For each horizon ``kappa``, the batch approach of Ajgl et al. (2014) chooses omega for the
@@ -751,6 +866,9 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
         What to minimise.
     limit : bool, optional
         Compute ``omega_limit`` (default True; it costs a 400-step recursion).
+    rho : float or array_like, shape (..., 2) or (..., 1), optional
+        Correlation coefficient bound(s) of partial CI (see :func:`optimal_omega`); the
+        omega fields then hold ``delta_1``. None (default): Covariance Intersection.
 
     Returns
     -------
@@ -780,6 +898,8 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
     .. [1] J. Ajgl, M. Šimandl, M. Reinhardt, B. Noack and U. D. Hanebeck, "Covariance
        intersection in state estimation of dynamical systems", FUSION 2014, Sec. IV.B,
        eqs. (29)-(35), Figs. 3, 4, 6 and 7.
+    .. [2] J. Wu, Q. Cai and M. Fu, "Covariance intersection for partially correlated
+       random vectors", IEEE TAC 63(3), 2018, eqs. (24), (33) (with ``rho``).
 
     Examples
     --------
@@ -792,9 +912,18 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
     ...                   np.array([[0.0, 1.0]]), 3.0, horizons=[0, 1, 50])
     >>> s.omega.round(3).tolist(), round(float(s.omega_limit), 3)
     ([0.412, 0.779, 0.853], 0.853)
+
+    The same with partial CI for ``rho = 0.5``:
+
+    >>> s = horizon_study(np.diag([10 / 11, 10.0]), np.diag([10.0, 30 / 13]), F, Q,
+    ...                   np.array([[0.0, 1.0]]), 3.0, horizons=[0, 1, 50], rho=0.5)
+    >>> s.omega.round(3).tolist(), round(float(s.omega_limit), 3)
+    ([0.433, 0.639, 0.657], 0.657)
     """
     horizons = _as_horizons(horizons)
     Ps = _pair(PA, PB)
+    rho = _as_rho(rho, 2, Ps.shape[:-3])
+    rho_k = None if rho is None else rho[..., None, :]
     n = Ps.shape[-1]
     kind, W = _parse_criterion(criterion, n)
     model = as_model(F, Q, H, R, G, n)
@@ -807,15 +936,15 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
                                                      collect=everything)))
     terms = _stack_terms([collected[h] for h in horizons])
     Ps_k = Ps[..., None, :, :, :]
-    weights, _ = _optimal_weights(Ps_k, terms, kind, W)
-    recursive_w, _ = _optimal_weights(Ps, collected[0], kind, W)
-    P_batch = _fused_bound(Ps_k, terms, weights)
-    P_recursive = _fused_bound(Ps_k, terms, recursive_w[..., None, :])
+    weights, _ = _optimal_weights(Ps_k, terms, kind, W, rho_k)
+    recursive_w, _ = _optimal_weights(Ps, collected[0], kind, W, rho)
+    P_batch = _fused_bound(Ps_k, terms, weights, rho_k)
+    P_recursive = _fused_bound(Ps_k, terms, recursive_w[..., None, :], rho_k)
     batch_shape = P_batch.shape[:-3]
     omega_limit = np.full(batch_shape, np.nan)
     if limit:
         tail = _stack_terms([collected[h] for h in _LIMIT_HORIZONS])
-        w_tail, _ = _optimal_weights(Ps_k, tail, kind, W)
+        w_tail, _ = _optimal_weights(Ps_k, tail, kind, W, rho_k)
         first, last = w_tail[..., 0, 0], w_tail[..., 1, 0]
         omega_limit = np.where(np.abs(first - last) < 1e-8, last, np.nan)
     steady_P = steady_value = None
@@ -840,4 +969,5 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
         steady_P=steady_P,
         steady_value=steady_value,
         omega_limit=omega_limit,
+        rho=None if rho is None else np.broadcast_to(rho, batch_shape + (2,)).copy(),
     )

@@ -23,6 +23,7 @@ from ._validation import (
     check_finite,
     check_int,
     check_scalar,
+    check_weights,
     restore_style,
 )
 from .bounds import correlation_bound
@@ -55,6 +56,17 @@ def _check_rho(rho, count, batch_shape):
             f"rho of shape {array.shape} does not broadcast against the batch shape "
             f"{batch_shape} of the estimates"
         ) from None
+
+
+def _effective_rho(rho):
+    """The bounds the rule uses: for two estimates ``sqrt(rho_1 rho_2)`` for both.
+
+    Definition 2 for two vectors is Lemma 3's condition with ``rho = sqrt(rho_1 rho_2)``,
+    and Theorem 3 (the trace-minimal bound) takes one common ``rho``.
+    """
+    if rho.shape[-1] == 2:
+        return np.sqrt(rho[..., :1] * rho[..., 1:]).repeat(2, axis=-1)
+    return rho
 
 
 def _partial_weights(delta, rho):
@@ -209,7 +221,7 @@ def _newton(informations, rho, tol, max_iter):
     return delta, np.asarray(steps + sweeps), converged
 
 
-def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating"):
+def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating", delta=None):
     """Covariance Intersection for partially correlated estimates (Wu, Cai & Fu 2018).
 
     Fuses N estimates whose correlation coefficient bound is at most ``rho`` (eq. (8) for
@@ -258,6 +270,14 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating"):
         ``delta`` (problem (35)) by an active-set Newton method on the simplex; the same
         optimum in a few iterations, also where the alternating projections converge
         slowly (an optimum on the boundary of the simplex, where an estimate is ignored).
+    delta : array_like, shape (..., N), or float, optional
+        Fuse with these ``delta`` (on the simplex; a float ``d`` means ``(d, 1 - d)`` for
+        two estimates) instead of the trace-optimal ones, as ``omega=`` does for
+        :func:`covariance_intersection`: the weights are then eq. (24), ``P`` eq. (33) and
+        the gains eq. (34). Every ``delta`` gives a valid bound (Lemma 7); this is how a
+        ``delta`` chosen for another criterion, such as the bound after future filtering
+        (:func:`cifilter.horizon.horizon_weights` with ``rho=``), is applied. ``tol``,
+        ``max_iter`` and ``solver`` are then not used.
 
     Returns
     -------
@@ -269,14 +289,17 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating"):
         ``rho`` (..., N) as used (for two estimates ``sqrt(rho_1 rho_2)`` twice),
         ``iterations`` and ``converged`` per problem, ``value`` (the trace of ``P``),
         ``gap`` (a certified bound on the relative excess of ``Tr(P)`` over its minimum),
-        ``solver`` and ``algorithm`` (1 or 2, the paper's algorithm for this N).
+        ``rule`` (``"optimal"``, or ``"fixed"`` for a given ``delta``), and for the optimal
+        ``delta`` also ``solver`` and ``algorithm`` (1 or 2, the paper's algorithm for this
+        N).
 
     Raises
     ------
     ValueError
         Fewer than two estimates, mismatched shapes, non-finite values, covariances that
         are not symmetric positive definite, ``rho`` outside [0, 1] or of the wrong length,
-        ``tol`` not positive, ``max_iter`` below 1, an unknown ``solver``.
+        ``tol`` not positive, ``max_iter`` below 1, an unknown ``solver``, ``delta`` off
+        the simplex or of the wrong shape.
     TypeError
         Non-numeric input, a non-integer ``max_iter``.
 
@@ -324,6 +347,12 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating"):
     >>> [round(float(np.trace(partial_ci([np.zeros(2)] * 2, [Pa, Pb], rho).P)), 9)
     ...  for rho in (1.0, 0.5, 0.0)]
     [3.2, 2.4, 1.6]
+
+    A given ``delta`` (here the optimal one, so the result is the same):
+
+    >>> r = partial_ci([np.zeros(2)] * 2, [Pa, Pb], 0.5, delta=[0.5, 0.5])
+    >>> r.info["rule"], r.omega.round(6).tolist(), round(float(np.trace(r.P)), 9)
+    ('fixed', [0.666667, 0.666667], 2.4)
     """
     est = as_estimates(xs, Ps)
     rho = _check_rho(rho, est.count, est.batch_shape)
@@ -332,37 +361,41 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating"):
     if solver not in _SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(map(repr, _SOLVERS))}, got {solver!r}")
     two = est.count == 2
-    # Definition 2 for two vectors is Lemma 3's condition with rho = sqrt(rho_1 rho_2).
-    used = np.sqrt(rho[..., :1] * rho[..., 1:]).repeat(2, axis=-1) if two else rho
+    used = _effective_rho(rho)
     informations = cho_inverse(est.L)
-    minimise = _alternating_projection if solver == "alternating" else _newton
-    delta, iterations, converged = minimise(informations, used, tol, max_iter)
+    if delta is None:
+        minimise = _alternating_projection if solver == "alternating" else _newton
+        delta, iterations, converged = minimise(informations, used, tol, max_iter)
+        info = {"rule": "optimal", "iterations": iterations, "converged": converged,
+                "solver": solver, "algorithm": 1 if two else 2}
+    else:
+        fixed = check_weights(delta, est.count, "delta")
+        try:
+            delta = np.array(np.broadcast_to(fixed, used.shape))
+        except ValueError:
+            raise ValueError(f"delta of shape {fixed.shape} does not broadcast against the "
+                             f"batch shape {est.batch_shape} of the estimates") from None
+        info = {"rule": "fixed"}
     weights = _partial_weights(delta, used)
     x, P, gains = weighted_information_fusion(est.x, est.L, weights, informations)
     spread = np.einsum("...ab,...nbc,...ca->...n", P, informations, P)
-    info = {
-        "delta": delta,
-        "rho": used,
-        "iterations": iterations,
-        "converged": converged,
-        "value": np.trace(P, axis1=-2, axis2=-1),
-        "gap": _relative_gap(delta, used, P, spread),
-        "solver": solver,
-        "algorithm": 1 if two else 2,
-    }
+    with np.errstate(over="ignore", invalid="ignore"):  # a fixed delta_i = 0, rho_i ~ 1e-300
+        gap = _relative_gap(delta, used, P, spread)
+    info.update(delta=delta, rho=used, value=np.trace(P, axis1=-2, axis2=-1), gap=gap)
     if two:
         with np.errstate(divide="ignore"):
             info["gamma"] = delta[..., 1] / delta[..., 0]  # delta_1 = 1 / (1 + gamma)
     return FusionResult(restore_style(x, est.column), P, "pci", weights, gains, info)
 
 
-def _registered_pci(xs, Ps, rho=None, tol=1e-10, max_iter=100, solver="alternating"):
+def _registered_pci(xs, Ps, rho=None, tol=1e-10, max_iter=100, solver="alternating",
+                    delta=None):
     if rho is None:
         raise ValueError(
             "the 'pci' rule needs a correlation coefficient bound: fuse(..., method='pci', "
             "rho=...) with rho in [0, 1] (see cifilter.bounds.correlation_bound)"
         )
-    return partial_ci(xs, Ps, rho, tol=tol, max_iter=max_iter, solver=solver)
+    return partial_ci(xs, Ps, rho, tol=tol, max_iter=max_iter, solver=solver, delta=delta)
 
 
 def _truth_rho(joint):

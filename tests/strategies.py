@@ -73,3 +73,38 @@ def assert_psd(M, tol=1e-8, what="matrix"):
     smallest = np.linalg.eigvalsh(0.5 * (M + M.T))[0]
     scale = max(1.0, float(np.abs(M).max()))
     assert smallest >= -tol * scale, f"{what} has eigenvalue {smallest:.3g} < 0"
+
+
+@st.composite
+def rho_bounded_joints(draw, Ps, rho):
+    """A joint covariance with diagonal blocks Ps that satisfies Definition 2 for ``rho``.
+
+    J = blockdiag((1 - rho_i) P_i) + M with M positive semidefinite and diagonal blocks
+    rho_i P_i (zero rows and columns where rho_i = 0); then P_m^(rho) = M >= 0 (eq. (21)).
+    M comes from a random factor of random rank, so fully correlated parts occur.
+    """
+    count, n = len(Ps), Ps[0].shape[0]
+    rho = np.broadcast_to(np.asarray(rho, dtype=float), (count,))
+    joint = np.zeros((count * n, count * n))
+    # rho_i P_i with a denormal rho_i is not numerically positive definite; such vectors get
+    # no cross-covariance (admissible for every rho_i >= 0)
+    inside = [i for i in range(count) if rho[i] > 1e-9]
+    if inside:
+        k = len(inside) * n
+        rank = draw(st.integers(1, k))
+        Z = draw(arrays(float, (k, rank), elements=finite)) + 1e-3 * np.eye(k, rank)
+        M = joint_from_correlation([rho[i] * Ps[i] for i in inside], Z)
+        index = np.concatenate([np.arange(i * n, (i + 1) * n) for i in inside])
+        joint[np.ix_(index, index)] = M
+    for i in range(count):
+        block = slice(i * n, (i + 1) * n)
+        joint[block, block] += (1 - rho[i]) * Ps[i] if i in inside else Ps[i]
+    return joint
+
+
+def sets_with_joint(count, n, per_estimate):
+    """(Ps, rho, joint) with joint satisfying Definition 2 for rho."""
+    rho = (arrays(float, (count,), elements=st.floats(0.0, 1.0)) if per_estimate
+           else st.floats(0.0, 1.0))
+    return st.tuples(covariance_sets(count, n), rho).flatmap(
+        lambda t: st.tuples(st.just(t[0]), st.just(t[1]), rho_bounded_joints(t[0], t[1])))

@@ -363,6 +363,20 @@ def test_three_estimates_against_a_simplex_grid(criterion):
     np.testing.assert_allclose(r.P, propagate_bound(fused, F, Q, H, R, 3), rtol=1e-8)
 
 
+def test_three_estimates_det_converges_where_the_bound_has_det_one():
+    """log det P_kappa near 0 must not hide the rounding level from the solver's stopping
+    test (the problems used to run to the iteration limit, flagged unconverged)."""
+    for seed in (2, 7, 13):
+        F, Q, H, R, PA, PB = random_system(seed)
+        PC = np.array([[1.0, 0.3, 0.0], [0.3, 0.5, 0.1], [0.0, 0.1, 2.0]])
+        Ps = np.stack([PA, PB, PC])
+        for horizon in (1, 3, 10):
+            scale = np.linalg.det(horizon_weights(Ps, F, Q, H, R, horizon, "det").P) ** (1 / 3)
+            r = horizon_weights(Ps / scale, F, Q / scale, H, R / scale, horizon, "det")
+            assert np.linalg.det(r.P) == pytest.approx(1.0, abs=1e-6)
+            assert r.info["converged"] and r.info["iterations"] < 50
+
+
 def test_n_weights_with_two_estimates_equal_optimal_omega():
     F, Q, H, R, PA, PB = random_system(4)
     for criterion in ("det", "trace"):
@@ -570,6 +584,16 @@ def test_filter_fuse_with_horizon_and_several_estimates():
     (dict(horizon=-1), ValueError, "horizon must be >= 0"),
     (dict(horizon=2, future=dict(F=np.eye(3), Q=Q_DYN)), ValueError, "F must have shape"),
     (dict(horizon=2, criterion="max"), ValueError, "criterion"),
+    # partial-correlation CI (tests/test_horizon_pci.py)
+    (dict(method="pci", horizon=2), ValueError, "needs a correlation coefficient bound"),
+    (dict(method="pci", rho=0.5, delta=[0.5, 0.5], horizon=2), ValueError, "give one"),
+    (dict(method="pci", rho=0.5, horizon=2, tol=1e-3), TypeError, "accepts the option"),
+    (dict(method="pci", rho=1.5, horizon=2), ValueError, "rho must lie"),
+    (dict(method="pci", rho=[0.1, 0.2, 0.3], horizon=2), ValueError, "rho must be a scalar"),
+    (dict(method="pci", rho=0.5, horizon=2, criterion="max"), ValueError, "criterion"),
+    (dict(method="pci", rho=0.5, horizon=-1), ValueError, "horizon must be >= 0"),
+    (dict(method="pci", rho=0.5, future=dict(F=F_DYN, Q=Q_DYN)), ValueError, "give horizon="),
+    (dict(method="naive", horizon=2), ValueError, "needs method='ci' .or 'pci'"),
 ])
 def test_filter_fuse_with_horizon_is_atomic_on_bad_input(kwargs, error, match):
     kf = dynamic_filter("A")

@@ -11,9 +11,8 @@ from scipy.optimize import minimize, minimize_scalar
 from strategies import (
     assert_psd,
     covariance_sets,
-    finite,
     fused_error_covariance,
-    joint_from_correlation,
+    sets_with_joint,
 )
 
 from cifilter import (
@@ -69,41 +68,6 @@ def general_solver_minimum(Ps, rho):
                  options={"ftol": 1e-15, "maxiter": 1000}).fun
         for d0 in [np.full(count, 1 / count), *starts]
     )
-
-
-@st.composite
-def rho_bounded_joints(draw, Ps, rho):
-    """A joint covariance with diagonal blocks Ps that satisfies Definition 2 for ``rho``.
-
-    J = blockdiag((1 - rho_i) P_i) + M with M positive semidefinite and diagonal blocks
-    rho_i P_i (zero rows and columns where rho_i = 0); then P_m^(rho) = M >= 0 (eq. (21)).
-    M comes from a random factor of random rank, so fully correlated parts occur.
-    """
-    count, n = len(Ps), Ps[0].shape[0]
-    rho = np.broadcast_to(np.asarray(rho, dtype=float), (count,))
-    joint = np.zeros((count * n, count * n))
-    # rho_i P_i with a denormal rho_i is not numerically positive definite; such vectors get
-    # no cross-covariance (admissible for every rho_i >= 0)
-    inside = [i for i in range(count) if rho[i] > 1e-9]
-    if inside:
-        k = len(inside) * n
-        rank = draw(st.integers(1, k))
-        Z = draw(arrays(float, (k, rank), elements=finite)) + 1e-3 * np.eye(k, rank)
-        M = joint_from_correlation([rho[i] * Ps[i] for i in inside], Z)
-        index = np.concatenate([np.arange(i * n, (i + 1) * n) for i in inside])
-        joint[np.ix_(index, index)] = M
-    for i in range(count):
-        block = slice(i * n, (i + 1) * n)
-        joint[block, block] += (1 - rho[i]) * Ps[i] if i in inside else Ps[i]
-    return joint
-
-
-def sets_with_joint(count, n, per_estimate):
-    """(Ps, rho, joint) with joint satisfying Definition 2 for rho."""
-    rho = (arrays(float, (count,), elements=st.floats(0.0, 1.0)) if per_estimate
-           else st.floats(0.0, 1.0))
-    return st.tuples(covariance_sets(count, n), rho).flatmap(
-        lambda t: st.tuples(st.just(t[0]), st.just(t[1]), rho_bounded_joints(t[0], t[1])))
 
 
 # ----------------------------------------------------------------- paper values
@@ -181,6 +145,68 @@ def test_rho_0_is_naive_fusion(count, seed):
     np.testing.assert_allclose(r.gains, naive.gains, rtol=1e-12, atol=1e-14)
     np.testing.assert_array_equal(r.omega, 1.0)
     assert r.info["converged"] and r.info["iterations"] == 1
+
+
+# ----------------------------------------------------------------- a given delta
+@pytest.mark.parametrize("count", [2, 3, 4])
+def test_given_delta_applies_eqs_24_33_34(count):
+    xs, Ps = random_problem(count, 3, 40 + count)
+    rho = np.array([0.0, 0.35, 0.8, 1.0][:count]) if count > 2 else np.array([0.35, 0.8])
+    delta = np.random.default_rng(count).dirichlet(np.ones(count))
+    r = partial_ci(xs, Ps, rho, delta=delta)
+    used = np.full(2, np.sqrt(rho.prod())) if count == 2 else rho
+    w = np.array([1.0 if q == 0 else 1.0 / (q / d + 1 - q) for d, q in zip(delta, used)])
+    P = np.linalg.inv(sum(wi * np.linalg.inv(Pi) for wi, Pi in zip(w, Ps)))  # (33)
+    gains = np.stack([wi * P @ np.linalg.inv(Pi) for wi, Pi in zip(w, Ps)])  # (34)
+    np.testing.assert_allclose(r.omega, w, rtol=1e-14)  # (24)
+    np.testing.assert_allclose(r.P, P, rtol=1e-10)
+    np.testing.assert_allclose(r.gains, gains, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(r.x, np.einsum("kij,kj->i", gains, xs), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(r.info["delta"], delta, rtol=1e-15)
+    assert r.info["rule"] == "fixed" and "iterations" not in r.info
+    assert r.info["value"] == pytest.approx(np.trace(P), rel=1e-12)
+    # the certified gap bounds the excess over the optimum
+    best = partial_ci(xs, Ps, rho, solver="newton")
+    assert best.info["rule"] == "optimal"
+    excess = (np.trace(r.P) - np.trace(best.P)) / np.trace(r.P)
+    assert 0 <= excess <= r.info["gap"] + 1e-12
+
+
+def test_given_optimal_delta_reproduces_the_optimum_and_rho_1_is_fixed_ci():
+    xs, Ps = random_problem(3, 2, 9)
+    best = partial_ci(xs, Ps, 0.6)
+    again = partial_ci(xs, Ps, 0.6, delta=best.info["delta"])
+    np.testing.assert_array_equal(again.P, best.P)
+    np.testing.assert_array_equal(again.x, best.x)
+    assert again.info["gap"] == pytest.approx(best.info["gap"], abs=1e-15)
+    omega = np.array([0.2, 0.0, 0.8])
+    ci = covariance_intersection(xs, Ps, omega=omega)
+    pci = partial_ci(xs, Ps, 1.0, delta=omega)
+    np.testing.assert_allclose(pci.P, ci.P, rtol=1e-12)
+    np.testing.assert_allclose(pci.gains, ci.gains, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(pci.x, ci.x, rtol=1e-12)
+    # delta_i = 0 ignores a correlated estimate; rho_i = 0 keeps an uncorrelated one
+    np.testing.assert_array_equal(pci.gains[1], 0.0)
+    assert partial_ci(xs, Ps, [0.5, 0.0, 0.5], delta=omega).omega[1] == 1.0
+
+
+def test_given_delta_is_batched_and_reaches_fuse_and_filters():
+    xs, Ps = random_problem(2, 2, 3)
+    delta = np.array([[0.1, 0.9], [0.5, 0.5], [1.0, 0.0]])
+    # three problems (the same estimates) with their own delta; a delta batch must
+    # broadcast against the estimates' batch, as omega= of covariance_intersection
+    r = partial_ci(np.stack([xs] * 3), np.stack([Ps] * 3), 0.4, delta=delta)
+    assert r.P.shape == (3, 2, 2)
+    for i in range(3):
+        np.testing.assert_array_equal(r.P[i], partial_ci(xs, Ps, 0.4, delta=delta[i]).P)
+    scalar = partial_ci(xs, Ps, 0.4, delta=0.1)
+    np.testing.assert_array_equal(scalar.P, r.P[0])
+    via = fuse([(xs[0], Ps[0]), (xs[1], Ps[1])], method="pci", rho=0.4, delta=[0.1, 0.9])
+    np.testing.assert_array_equal(via.P, r.P[0])
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    kf.x, kf.P = xs[0][:, None], Ps[0].copy()
+    kf.fuse((xs[1], Ps[1]), method="pci", rho=0.4, delta=[0.1, 0.9])
+    np.testing.assert_allclose(kf.P, r.P[0], rtol=1e-14)
 
 
 @pytest.mark.parametrize("count", [2, 3])
@@ -456,6 +482,12 @@ def test_inputs_are_not_mutated():
     ({"rho": 0.5, "max_iter": 0}, ValueError, "max_iter"),
     ({"rho": 0.5, "max_iter": 2.5}, TypeError, "max_iter"),
     ({"rho": 0.5, "solver": "bisection"}, ValueError, "solver"),
+    ({"rho": 0.5, "delta": [0.3, 0.3]}, ValueError, "delta must lie on the simplex"),
+    ({"rho": 0.5, "delta": [1.2, -0.2]}, ValueError, "delta must lie on the simplex"),
+    ({"rho": 0.5, "delta": [0.2, 0.3, 0.5]}, ValueError, r"delta must have shape \(\.\.\., 2\)"),
+    ({"rho": 0.5, "delta": np.full((3, 2), 0.5)}, ValueError, "delta of shape .* broadcast"),
+    ({"rho": 0.5, "delta": [np.nan, 0.5]}, ValueError, "delta contains non-finite"),
+    ({"rho": 0.5, "delta": "half"}, TypeError, "delta must be a numeric array"),
 ])
 def test_bad_options_are_named(kwargs, error, message):
     with pytest.raises(error, match=message):
