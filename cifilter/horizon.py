@@ -60,7 +60,7 @@ from typing import Any, Optional
 import numpy as np
 from scipy import linalg as sla
 
-from ._linalg import cho_inverse, cho_solve, cholesky, lower_inverse, symmetrize
+from ._linalg import cho_inverse, cho_solve, cholesky, diagonalise_pair, symmetrize
 from ._optimize import minimize_convex_interval, minimize_convex_simplex
 from ._partial_horizon import information_bound, partial_horizon_delta
 from ._riccati import (
@@ -102,9 +102,9 @@ def _pair_weights(S, terms, kind, W):
     batch = S.shape[:-3]
     n = S.shape[-1]
     size = int(np.prod(batch, dtype=int))
-    L_inv = lower_inverse(cholesky(S[..., 1, :, :], "P_B^-1 + Gamma"))
-    mu, U = np.linalg.eigh(symmetrize(L_inv @ S[..., 0, :, :] @ np.swapaxes(L_inv, -1, -2)))
-    T = np.swapaxes(L_inv, -1, -2) @ U
+    pair = diagonalise_pair(cholesky(S[..., 1, :, :], "P_B^-1 + Gamma"), S[..., 0, :, :])
+    mu = pair.lam
+    T = np.swapaxes(pair.L1_inv, -1, -2) @ pair.U  # S(omega)^-1 = T diag(d) T^T
     V = terms.Psi @ T  # the bound is P_c + exp(2 s) V diag(d) V^T, d = 1 / (1 + omega a)
     a = (mu - 1.0).reshape(size, n)
     if kind == "det":
