@@ -11,7 +11,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from ._linalg import cho_solve, cholesky, solve_lower, symmetrize
-from ._validation import SYMMETRY_RTOL, as_float_array, check_covariances, check_finite
+from ._validation import as_float_array, as_matrix, check_covariances, check_psd
 
 __all__ = ["Model", "Terms", "as_matrix", "as_model", "broadcast_terms", "check_steps_available",
            "horizon_terms", "predict", "propagated_bound", "riccati", "update"]
@@ -36,36 +36,6 @@ def is_step_sequence(value):
     return isinstance(value, (list, tuple)) and len(value) > 0 and all(
         item is None or np.ndim(item) >= 2 for item in value
     )
-
-
-def as_matrix(value, name, shape=None):
-    array = as_float_array(value, name)
-    if array.ndim < 2:
-        raise ValueError(f"{name} must be a matrix (..., rows, columns), got shape {array.shape}")
-    check_finite(array, name)
-    if shape is not None:
-        rows, columns = shape
-        if (rows is not None and array.shape[-2] != rows) or array.shape[-1] != columns:
-            want = f"({'p' if rows is None else rows}, {columns})"
-            raise ValueError(f"{name} must have shape (..., {want[1:-1]}), got shape {array.shape}")
-    return array
-
-
-def psd(value, size, name):
-    """A symmetric positive semidefinite (..., size, size) matrix; a number means value * I."""
-    if isinstance(value, numbers.Real) and not isinstance(value, bool):
-        value = float(value) * np.eye(size)
-    M = as_matrix(value, name, (size, size))
-    scale = np.abs(M).max(axis=(-2, -1), keepdims=True)
-    if np.any(np.abs(M - np.swapaxes(M, -1, -2)) > SYMMETRY_RTOL * scale):
-        raise ValueError(f"{name} must be symmetric")
-    M = symmetrize(M)
-    smallest = np.linalg.eigvalsh(M)[..., 0]
-    if np.any(smallest < -1e-10 * scale[..., 0, 0]):
-        raise ValueError(
-            f"{name} must be positive semidefinite (smallest eigenvalue {smallest.min():.3g})"
-        )
-    return M
 
 
 def measurement_model(H, R, n, names):
@@ -95,12 +65,12 @@ def as_model(F, Q, H, R, G, n, steps=None):
     """
     F = as_matrix(F, "F", (n, n))
     if G is None:
-        noise = psd(Q, n, "Q")
+        noise = check_psd(Q, n, "Q")
     else:
         G = as_matrix(G, "G")
         if G.shape[-2] != n:
             raise ValueError(f"G must have shape (..., {n}, m), got shape {G.shape}")
-        Qm = psd(Q, G.shape[-1], "Q")
+        Qm = check_psd(Q, G.shape[-1], "Q")
         noise = symmetrize(G @ Qm @ np.swapaxes(G, -1, -2))
     if is_step_sequence(H) or (H is None and is_step_sequence(R)):
         if not (isinstance(R, (list, tuple)) and isinstance(H, (list, tuple))

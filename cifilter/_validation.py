@@ -272,20 +272,43 @@ def as_rng(rng):
     )
 
 
-def check_psd_weight_matrix(W, n, name="criterion"):
-    """Check a symmetric positive semidefinite weight matrix (..., n, n)."""
-    W = as_float_array(W, name)
-    if W.ndim < 2 or W.shape[-2:] != (n, n):
-        raise ValueError(f"{name} must be an {n}x{n} weight matrix, got shape {W.shape}")
-    check_finite(W, name)
-    if np.any(np.abs(W - np.swapaxes(W, -1, -2)) > SYMMETRY_RTOL * max(np.abs(W).max(), 1e-300)):
+def as_matrix(value, name, shape=None):
+    """A finite numeric array (..., rows, columns), optionally of a given trailing shape."""
+    array = as_float_array(value, name)
+    if array.ndim < 2:
+        raise ValueError(f"{name} must be a matrix (..., rows, columns), got shape {array.shape}")
+    check_finite(array, name)
+    if shape is not None:
+        rows, columns = shape
+        if (rows is not None and array.shape[-2] != rows) or array.shape[-1] != columns:
+            want = f"({'p' if rows is None else rows}, {columns})"
+            raise ValueError(f"{name} must have shape (..., {want[1:-1]}), got shape {array.shape}")
+    return array
+
+
+def check_psd(value, size, name):
+    """A symmetric positive semidefinite (..., size, size) matrix; a number means value * I."""
+    if isinstance(value, numbers.Real) and not isinstance(value, bool):
+        value = float(value) * np.eye(size)
+    M = as_matrix(value, name, (size, size))
+    scale = np.abs(M).max(axis=(-2, -1), keepdims=True)
+    if np.any(np.abs(M - np.swapaxes(M, -1, -2)) > SYMMETRY_RTOL * scale):
         raise ValueError(f"{name} must be symmetric")
-    W = symmetrize(W)
-    smallest = np.linalg.eigvalsh(W)[..., 0]
-    if np.any(smallest < -1e-10 * np.abs(W).max(axis=(-2, -1))):
+    M = symmetrize(M)
+    smallest = np.linalg.eigvalsh(M)[..., 0]
+    if np.any(smallest < -1e-10 * scale[..., 0, 0]):
         raise ValueError(
             f"{name} must be positive semidefinite (smallest eigenvalue {smallest.min():.3g})"
         )
+    return M
+
+
+def check_psd_weight_matrix(W, n, name="criterion"):
+    """Check a symmetric positive semidefinite, nonzero weight matrix (..., n, n)."""
+    W = as_float_array(W, name)
+    if W.ndim < 2 or W.shape[-2:] != (n, n):
+        raise ValueError(f"{name} must be an {n}x{n} weight matrix, got shape {W.shape}")
+    W = check_psd(W, n, name)
     if np.any(np.abs(W).max(axis=(-2, -1)) == 0):
         raise ValueError(f"{name} must not be the zero matrix")
     return W

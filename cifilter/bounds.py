@@ -17,7 +17,7 @@ import numbers
 import numpy as np
 
 from ._linalg import cholesky, solve_lower, symmetrize
-from ._validation import SYMMETRY_RTOL, as_float_array, check_covariances, check_finite
+from ._validation import SYMMETRY_RTOL, as_float_array, as_matrix, check_covariances, check_finite
 
 __all__ = [
     "ci_trace_bound",
@@ -32,14 +32,6 @@ __all__ = [
 def _covariance(P, name):
     """A validated covariance stack (..., n, n) and its lower Cholesky factor."""
     return check_covariances(as_float_array(P, name), name)
-
-
-def _matrix(A, name):
-    A = as_float_array(A, name)
-    if A.ndim < 2:
-        raise ValueError(f"{name} must be a matrix (..., k, n), got shape {A.shape}")
-    check_finite(A, name)
-    return A
 
 
 def _unit_interval(value, name, batch_shape):
@@ -79,7 +71,7 @@ def _trace_terms(Pa, Pb, K1, K2):
     """``Tr(K1 Pa K1^T)``, ``Tr(K2 Pb K2^T)`` and ``||Y^T K2^T K1 X||_*`` (Theorem 1)."""
     Pa, X = _covariance(Pa, "Pa")
     Pb, Y = _covariance(Pb, "Pb")
-    K1, K2 = _matrix(K1, "K1"), _matrix(K2, "K2")
+    K1, K2 = as_matrix(K1, "K1"), as_matrix(K2, "K2")
     if K1.shape[-1] != Pa.shape[-1]:
         raise ValueError(
             f"K1 must have {Pa.shape[-1]} columns to match Pa of shape {Pa.shape[-2:]}, "
@@ -286,7 +278,7 @@ def correlation_bound(Pa, Pb, Pab):
     """
     Pa, X = _covariance(Pa, "Pa")
     Pb, Y = _covariance(Pb, "Pb")
-    Pab = _matrix(Pab, "Pab")
+    Pab = as_matrix(Pab, "Pab")
     if Pab.shape[-2:] != (Pa.shape[-1], Pb.shape[-1]):
         raise ValueError(
             f"Pab must have shape (..., {Pa.shape[-1]}, {Pb.shape[-1]}) to match Pa and Pb, "
