@@ -115,7 +115,7 @@ def as_covariance_stack(Ps, name="Ps"):
     return P
 
 
-def _vector_style(x, n):
+def vector_style(x, n):
     """'column' if x ends in (n, 1), 'row' if it ends in (n,), else None."""
     if x.ndim >= 2 and x.shape[-1] == 1 and x.shape[-2] == n:
         return "column"
@@ -132,7 +132,7 @@ def as_mean_stack(xs, n, count, name="xs"):
         rows, column = [], None
         for i, item in enumerate(xs):
             x = as_float_array(item, f"{name}[{i}]")
-            style = _vector_style(x, n)
+            style = vector_style(x, n)
             if style is None:
                 raise ValueError(
                     f"{name}[{i}] must have shape (..., {n}) or (..., {n}, 1) to match its "
@@ -142,7 +142,7 @@ def as_mean_stack(xs, n, count, name="xs"):
             column = (style == "column") if column is None else column
         return _stack(rows, axis=-2, name=name), column
     x = as_float_array(xs, name)
-    style = _vector_style(x, n)
+    style = vector_style(x, n)
     if style == "column":
         x = x[..., 0]
     if style is None or x.ndim < 2 or x.shape[-2] != count:

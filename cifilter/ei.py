@@ -30,6 +30,7 @@ from ._validation import (
     check_finite,
     check_scalar,
     restore_style,
+    vector_style,
 )
 from .registry import register_method
 from .result import FusionResult
@@ -54,8 +55,9 @@ def _check_one(x, P, x_name, P_name):
     P, L = check_covariances(P, P_name)
     n = P.shape[-1]
     x = as_float_array(x, x_name)
-    column = x.ndim >= 2 and x.shape[-2:] == (n, 1)
-    if not column and (x.ndim == 0 or x.shape[-1] != n):
+    style = vector_style(x, n)
+    column = style == "column"
+    if style is None:
         raise ValueError(
             f"{x_name} must have shape (..., {n}) or (..., {n}, 1) to match {P_name} "
             f"({n}x{n}), got shape {x.shape}"
