@@ -108,3 +108,56 @@ def sets_with_joint(count, n, per_estimate):
            else st.floats(0.0, 1.0))
     return st.tuples(covariance_sets(count, n), rho).flatmap(
         lambda t: st.tuples(st.just(t[0]), st.just(t[1]), rho_bounded_joints(t[0], t[1])))
+
+
+# ----------------------------------------------------------------- ill-conditioned inputs
+# Tracking covariances mix units and scales: condition numbers of 1e8..1e12 and overall
+# scales of 1e-12..1e12 are ordinary inputs. Two kinds of ill-conditioning occur and both
+# are drawn: a rotated spectrum (a nearly unobservable combination of states) and a graded
+# diagonal scaling of a well-conditioned matrix (mixed units, biases with tiny variance).
+MAX_CONDITION = 1e12
+
+
+def _random_orthogonal(draw, n):
+    A = draw(arrays(float, (n, n), elements=finite))
+    Q, R = np.linalg.qr(A + 1e-3 * np.eye(n))
+    return Q * np.where(np.diag(R) < 0, -1.0, 1.0)
+
+
+@st.composite
+def ill_conditioned_spd(draw, n, max_condition=MAX_CONDITION, scales=(1e-12, 1e12)):
+    """SPD n x n matrices with condition number up to ``max_condition`` and any scale.
+
+    Half of the draws rotate a log-spread spectrum, half scale a well-conditioned matrix
+    by a graded diagonal (``D C D``: mixed units); the overall scale is log-uniform in
+    ``scales``. The condition number of the result is at most about ``max_condition``.
+    """
+    log_cond = draw(st.floats(0.0, np.log10(max_condition)))
+    log_scale = draw(st.floats(np.log10(scales[0]), np.log10(scales[1])))
+    if draw(st.booleans()) or n == 1:
+        Q = _random_orthogonal(draw, n)
+        inner = draw(arrays(float, (max(n - 2, 0),), elements=st.floats(0.0, 1.0)))
+        exponents = np.sort(np.concatenate([[0.0, 1.0][:n], inner]))[::-1] * log_cond
+        P = (Q * 10.0 ** (exponents + log_scale)) @ Q.T
+    else:
+        C = draw(spd_matrices(n, 0.5, 2.0))  # condition number at most 4
+        d = np.sqrt(draw(arrays(float, (n,), elements=st.floats(0.0, 1.0))))
+        d = d - d.min()
+        d = 10.0 ** (0.5 * (log_cond - np.log10(4.0)) * d / max(d.max(), 1e-300)
+                     + 0.5 * log_scale)
+        P = (d[:, None] * C) * d[None, :]
+    return 0.5 * (P + P.T)
+
+
+@st.composite
+def ill_conditioned_sets(draw, count, n, max_condition=MAX_CONDITION, common_scale=True):
+    """``count`` ill-conditioned covariances of dimension n.
+
+    With ``common_scale`` the matrices share one overall scale (estimates of one state in
+    one unit system); otherwise every matrix has its own scale in 1e-12..1e12.
+    """
+    if common_scale:
+        log_scale = draw(st.floats(-12.0, 12.0))
+        scales = (10.0 ** log_scale, 10.0 ** log_scale)
+        return [draw(ill_conditioned_spd(n, max_condition, scales)) for _ in range(count)]
+    return [draw(ill_conditioned_spd(n, max_condition)) for _ in range(count)]
