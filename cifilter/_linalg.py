@@ -10,10 +10,13 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = [
+    "MAX_CONDITION",
     "DiagonalisedPair",
+    "IllConditionedError",
     "cho_inverse",
     "cho_solve",
     "cholesky",
+    "condition_number",
     "diagonalise_pair",
     "logdet_from_cholesky",
     "lower_inverse",
@@ -22,6 +25,44 @@ __all__ = [
     "spd_inverse",
     "symmetrize",
 ]
+
+
+# The conditioning contract (docs/conventions.rst): for inputs whose condition numbers are
+# at most MAX_CONDITION every rule returns a finite, symmetric, positive definite answer
+# (a conservative rule's one a valid bound); beyond it a rule either still does or raises
+# IllConditionedError, a ValueError that says by how much.
+MAX_CONDITION = 1e12
+
+
+class IllConditionedError(ValueError):
+    """A covariance (input or intermediate) too ill-conditioned to compute with reliably.
+
+    A subclass of :class:`ValueError`; the message names the matrix and its condition
+    number.
+    """
+
+
+def condition_number(A):
+    """2-norm condition numbers of a stack of symmetric matrices (inf if not PD).
+
+    For messages and checks only (one ``eigvalsh`` per matrix).
+    """
+    A = np.asarray(A, dtype=float)
+    eigenvalues = np.linalg.eigvalsh(A)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.abs(eigenvalues[..., -1]) / eigenvalues[..., 0]
+    return np.where(eigenvalues[..., 0] > 0, ratio, np.inf)
+
+
+def ill_conditioned(name, cond, what="is too ill-conditioned to fuse reliably"):
+    """The :class:`IllConditionedError` for ``name`` with condition number ``cond``."""
+    cond = float(np.max(cond))
+    shown = "infinite (numerically singular)" if not np.isfinite(cond) else f"{cond:.3g}"
+    return IllConditionedError(
+        f"{name} {what}: condition number {shown}; cifilter's results are guaranteed for "
+        f"condition numbers up to {MAX_CONDITION:.0e} (see the conditioning contract in the "
+        "documentation's conventions)"
+    )
 
 
 def symmetrize(A):
