@@ -18,6 +18,7 @@ __all__ = [
     "cholesky",
     "condition_number",
     "diagonalise_pair",
+    "ill_conditioned",
     "logdet_from_cholesky",
     "lower_inverse",
     "mahalanobis_sq",
