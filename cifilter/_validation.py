@@ -21,6 +21,9 @@ from ._linalg import cholesky, symmetrize
 # Relative tolerance for the symmetry check of a covariance: filterpy's Joseph-form
 # updates leave asymmetries of order 1e-16 relative, user typos are of order 1.
 SYMMETRY_RTOL = 1e-8
+# Tolerance of the positive semidefiniteness check of weight and model matrices: smallest
+# eigenvalue >= -PSD_RTOL * max|M_ij|.
+PSD_RTOL = 1e-10
 
 
 class Estimates(NamedTuple):
@@ -504,8 +507,15 @@ def check_psd(value, size, name):
     if np.any(np.abs(M - np.swapaxes(M, -1, -2)) > SYMMETRY_RTOL * scale):
         raise ValueError(f"{name} must be symmetric")
     M = symmetrize(M)
+    # PSD up to -PSD_RTOL * max|M_ij| in the smallest eigenvalue. Success path: one
+    # Cholesky factorisation of the shifted matrix; eigenvalues only when it fails.
+    try:
+        np.linalg.cholesky(M + (PSD_RTOL * scale) * np.eye(size))
+        return M
+    except np.linalg.LinAlgError:
+        pass
     smallest = np.linalg.eigvalsh(M)[..., 0]
-    if np.any(smallest < -1e-10 * scale[..., 0, 0]):
+    if np.any(smallest < -PSD_RTOL * scale[..., 0, 0]):
         raise ValueError(
             f"{name} must be positive semidefinite (smallest eigenvalue {smallest.min():.3g})"
         )
@@ -516,7 +526,7 @@ def check_psd_weight_matrix(W, n, name="criterion"):
     """Check a symmetric positive semidefinite, nonzero weight matrix (..., n, n)."""
     W = as_float_array(W, name)
     if W.ndim < 2 or W.shape[-2:] != (n, n):
-        raise ValueError(f"{name} must be an {n}x{n} weight matrix, got shape {W.shape}")
+        raise ValueError(f"{name} must be a weight matrix of shape ({n}, {n}), got shape {W.shape}")
     W = check_psd(W, n, name)
     if np.any(np.abs(W).max(axis=(-2, -1)) == 0):
         raise ValueError(f"{name} must not be the zero matrix")

@@ -27,11 +27,6 @@ def _is_estimate_pair(item):
         return False
 
 
-def _is_single(other):
-    """``other`` is one estimate (a filter or an (x, P) pair), not a list of them."""
-    return (hasattr(other, "x") and hasattr(other, "P")) or _is_estimate_pair(other)
-
-
 def _as_estimate_list(other):
     """``other`` as a list of estimates: a filter, an (x, P) pair or a sequence of them."""
     if hasattr(other, "x") and hasattr(other, "P"):
@@ -42,6 +37,10 @@ def _as_estimate_list(other):
         (hasattr(o, "x") and hasattr(o, "P")) or _is_estimate_pair(o) for o in other
     ):
         return list(other)
+    if isinstance(other, (tuple, list)) and len(other) == 2 and not any(
+        hasattr(o, "P") or _is_estimate_pair(o) for o in other
+    ):
+        return [other]  # an (x, P) pair of the wrong shapes: the validation names them
     raise TypeError(
         "other must be a filter (an object with .x and .P), an (x, P) pair, or a non-empty "
         f"list of them; got {type(other).__name__}"
@@ -276,7 +275,7 @@ class FusionMixin:
         ('pci', 'horizon', True)
         """
         others = _as_estimate_list(other)
-        labels = _labels(1 + len(others), not _is_single(other))
+        labels = _labels(1 + len(others), not (len(others) == 1 and others[0] is other))
         estimates = _single_estimates([(self.x, self.P)] + others, labels)
         if horizon is not None or future is not None:
             result = _fuse_for_horizon(self, estimates, method, horizon, future, options,

@@ -115,7 +115,7 @@ def _blue_cholesky(J, count, n):
         return None
     pivots = np.diagonal(L, axis1=-2, axis2=-1)
     if not np.all(np.isfinite(L)) or np.any(
-        pivots.min(axis=-1) ** 2 * MAX_CONDITION < pivots.max(axis=-1) ** 2
+        pivots.min(axis=-1) * np.sqrt(MAX_CONDITION) < pivots.max(axis=-1)
     ):
         return None  # (max_i L_ii / min_i L_ii)^2 <= cond(J): certainly too ill-conditioned
     E = _stacked_identity(count, n)
@@ -147,11 +147,13 @@ def _blue_semidefinite(J, count, n, name):
     """
     scale = np.trace(J, axis1=-2, axis2=-1)  # >= the largest eigenvalue of a PSD joint
     tol = RANK_RTOL * J.shape[-1] * scale
+    if np.any(scale <= 0):
+        raise ValueError(f"{name} has a zero diagonal: the estimates have zero error "
+                         "covariance and there is nothing to fuse")
     eigenvalues = np.linalg.eigvalsh(J)
     smallest = eigenvalues[..., 0]
-    if np.any(smallest < -tol) or np.any(scale <= 0):
-        index = np.unravel_index(int(np.argmin((smallest / np.maximum(scale, 1e-300)).ravel())),
-                                 smallest.shape)
+    if np.any(smallest < -tol):
+        index = np.unravel_index(int(np.argmin((smallest / scale).ravel())), smallest.shape)
         where = f"{name}[{', '.join(map(str, index))}]" if index else name
         raise ValueError(
             f"{where} is not positive semidefinite (smallest eigenvalue "
