@@ -80,7 +80,7 @@ def as_float_array(value, name):
     try:
         array = np.asarray(value)
     except (TypeError, ValueError) as exc:  # ragged nested sequences
-        raise TypeError(f"{name} must be a numeric array ({exc})") from None
+        raise TypeError(f"{name} must be a numeric array, got a ragged sequence ({exc})") from None
     kind = array.dtype.kind
     if kind == "c":
         raise TypeError(
@@ -244,13 +244,16 @@ def as_covariance_stack(Ps, name="Ps", *, labels=None):
     if _is_sequence(Ps):
         if len(Ps) == 0:
             raise ValueError(f"{name} is empty")
-        return _stack(Ps, axis=-3, name=name, labels=labels, matrices=True)
-    P = as_float_array(Ps, name)
-    if P.ndim < 3:
-        raise ValueError(
-            f"{name} must be a sequence of covariance matrices or an array of shape "
-            f"(..., N, n, n), got shape {P.shape}"
-        )
+        P = _stack(Ps, axis=-3, name=name, labels=labels, matrices=True)
+    else:
+        P = as_float_array(Ps, name)
+        if P.ndim < 3:
+            raise ValueError(
+                f"{name} must be a sequence of covariance matrices or an array of shape "
+                f"(..., N, n, n), got shape {P.shape}"
+            )
+    if P.shape[-1] == 0:
+        raise ValueError(f"{name} must hold matrices of dimension n >= 1, got shape {P.shape}")
     return P
 
 
