@@ -145,9 +145,10 @@ def _blue_semidefinite(J, count, n, name):
     ``RANK_RTOL * N n * trace(J)``. The error covariance is unique; when ``J_bb`` is
     singular the gains are not, and these are the minimum-norm ones.
     """
-    scale = np.trace(J, axis1=-2, axis2=-1)  # >= the largest eigenvalue of a PSD joint
+    # >= the largest eigenvalue of a PSD joint (its trace)
+    scale = np.abs(np.diagonal(J, axis1=-2, axis2=-1)).sum(axis=-1)
     tol = RANK_RTOL * J.shape[-1] * scale
-    if np.any(scale <= 0):
+    if np.any(scale == 0):
         raise ValueError(f"{name} has a zero diagonal: the estimates have zero error "
                          "covariance and there is nothing to fuse")
     eigenvalues = np.linalg.eigvalsh(J)
