@@ -529,7 +529,7 @@ def check_psd_weight_matrix(W, n, name="criterion"):
     """Check a symmetric positive semidefinite, nonzero weight matrix (..., n, n)."""
     W = as_float_array(W, name)
     if W.ndim < 2 or W.shape[-2:] != (n, n):
-        raise ValueError(f"{name} must be a weight matrix of shape ({n}, {n}), got shape {W.shape}")
+        raise ValueError(f"{name} must be a {n}x{n} weight matrix, got shape {W.shape}")
     W = check_psd(W, n, name)
     if np.any(np.abs(W).max(axis=(-2, -1)) == 0):
         raise ValueError(f"{name} must not be the zero matrix")
