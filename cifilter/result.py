@@ -34,15 +34,20 @@ class _FrozenList(list):
         return (_FrozenList, (list(self),))
 
 
+_IMMUTABLE = (str, bytes, int, float, bool, type(None), np.generic)
+
+
 def _frozen_info(value):
     """A read-only copy of an ``info`` value: arrays read-only, containers frozen.
 
     Mappings become read-only mappings, lists read-only lists and tuples tuples of frozen
     items, recursively; other values (numbers, strings, numpy scalars) are kept.
     """
+    if isinstance(value, _IMMUTABLE):  # the common case first: info is on every result
+        return value
     if isinstance(value, np.ndarray):
         return _frozen(value)
-    if isinstance(value, Mapping):
+    if isinstance(value, (dict, MappingProxyType)) or isinstance(value, Mapping):
         return MappingProxyType({key: _frozen_info(item) for key, item in value.items()})
     if isinstance(value, list):
         return _FrozenList(_frozen_info(item) for item in value)
