@@ -72,14 +72,32 @@ def symmetrize(A):
     return 0.5 * (A + np.swapaxes(A, -1, -2))
 
 
+# Eigenvalues of a symmetric matrix are computed with an absolute error of about
+# n * eps * ||A||; a smallest eigenvalue above -EIGENVALUE_RTOL * n * ||A|| is therefore
+# indistinguishable from zero (the matrix is numerically singular, not indefinite).
+EIGENVALUE_RTOL = 8 * np.finfo(float).eps
+
+
 def _first_failing_index(A):
-    """Index and smallest eigenvalue of the first matrix in a stack that is not PD."""
+    """Index, smallest and largest eigenvalue of the first matrix in a stack that is not PD.
+
+    Failure path only (one ``eigvalsh`` per finite matrix of the stack). A non-finite
+    matrix counts as failing with NaN eigenvalues.
+    """
     finite = np.isfinite(A).all(axis=(-2, -1))
     smallest = np.full(A.shape[:-2], np.nan)
-    smallest[finite] = np.linalg.eigvalsh(A[finite])[..., 0]
-    bad = ~(smallest > 0)  # NaN (non-finite matrix) counts as bad
-    index = np.unravel_index(int(np.argmax(bad.ravel())), A.shape[:-2])
-    return tuple(int(i) for i in index), float(smallest[index])
+    largest = np.full(A.shape[:-2], np.nan)
+    if np.any(finite):
+        eigenvalues = np.linalg.eigvalsh(A[finite])
+        smallest[finite] = eigenvalues[..., 0]
+        largest[finite] = np.abs(eigenvalues).max(axis=-1)
+    # Relative smallest eigenvalue; NaN (non-finite matrix) first, then the least PD.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        relative = np.where(largest > 0, smallest / largest, np.where(smallest < 0, -np.inf, 0.0))
+    bad = np.isnan(relative) | (relative <= EIGENVALUE_RTOL * A.shape[-1])
+    flat = bad.ravel() if np.any(bad) else (relative == relative.min()).ravel()
+    index = np.unravel_index(int(np.argmax(flat)), A.shape[:-2])
+    return tuple(int(i) for i in index), float(smallest[index]), float(largest[index])
 
 
 def cholesky(A, name="matrix"):
@@ -99,9 +117,21 @@ def cholesky(A, name="matrix"):
 
     Raises
     ------
+    IllConditionedError
+        (a ``ValueError``) If a matrix is positive semidefinite up to rounding but
+        numerically singular: its smallest eigenvalue is positive or within rounding
+        (``8 n eps ||A||``) of zero and the factorisation fails. The message names
+        ``name``, the offending index and the condition number (infinite when the
+        smallest eigenvalue is not positive).
     ValueError
-        If any matrix of the stack is not positive definite; the message names
-        ``name``, the offending index and its smallest eigenvalue.
+        If a matrix is not positive definite beyond rounding; the message names ``name``,
+        the offending index and its smallest eigenvalue. If a matrix has non-finite
+        entries, the message says so.
+
+    Notes
+    -----
+    The success path is one LAPACK factorisation; eigenvalues are computed only to
+    write the message of a failure.
     """
     A = np.asarray(A, dtype=float)
     try:
@@ -110,8 +140,17 @@ def cholesky(A, name="matrix"):
             return L
     except np.linalg.LinAlgError:
         pass
-    index, smallest = _first_failing_index(A)
+    index, smallest, largest = _first_failing_index(A)
     where = f"{name}[{', '.join(map(str, index))}]" if index else name
+    if np.isnan(smallest):
+        raise ValueError(
+            f"{where} is not positive definite: it has non-finite entries (NaN or inf)"
+        )
+    if smallest >= -EIGENVALUE_RTOL * A.shape[-1] * largest:
+        cond = largest / smallest if smallest > 0 else np.inf
+        raise ill_conditioned(
+            where, cond, what="is too ill-conditioned for a Cholesky factorisation"
+        )
     raise ValueError(f"{where} is not positive definite (smallest eigenvalue {smallest:.3g})")
 
 

@@ -21,6 +21,9 @@ from ._linalg import cholesky, symmetrize
 # Relative tolerance for the symmetry check of a covariance: filterpy's Joseph-form
 # updates leave asymmetries of order 1e-16 relative, user typos are of order 1.
 SYMMETRY_RTOL = 1e-8
+# Tolerance of the positive semidefiniteness check of weight and model matrices: smallest
+# eigenvalue >= -PSD_RTOL * max|M_ij|.
+PSD_RTOL = 1e-10
 
 
 class Estimates(NamedTuple):
@@ -44,14 +47,54 @@ class Estimates(NamedTuple):
         return self.x.shape[:-2]
 
 
+# dtype kinds that convert to float without losing anything a caller meant: bool ("b"),
+# complex ("c"), strings ("U", "S"), dates ("M", "m") and records ("V") are rejected.
+_NUMERIC_KINDS = frozenset("iuf")
+
+
 def as_float_array(value, name):
-    """``np.asarray(value, float)`` with a ``TypeError`` naming ``name`` on failure."""
+    """A float copy of ``value`` with a ``TypeError`` naming ``name`` for non-real input.
+
+    Parameters
+    ----------
+    value : array_like
+        Real numbers: a number, a nested sequence or an array of integer or float dtype
+        (object arrays of real numbers are converted too).
+    name : str
+        Argument name for the error messages.
+
+    Returns
+    -------
+    ndarray
+        A new float64 array (inputs are never aliased, so never modified).
+
+    Raises
+    ------
+    TypeError
+        ``None``, strings, booleans, complex numbers (their imaginary part would be
+        discarded silently), dates, ragged nested sequences or anything else that is not
+        an array of real numbers.
+    """
     if isinstance(value, (str, bytes)) or value is None:
         raise TypeError(f"{name} must be a numeric array, got {type(value).__name__}")
     try:
-        array = np.array(value, dtype=float)  # a copy: inputs are never aliased
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"{name} must be a numeric array ({exc})") from None
+        array = np.asarray(value)
+    except (TypeError, ValueError) as exc:  # ragged nested sequences
+        raise TypeError(f"{name} must be a numeric array, got a ragged sequence ({exc})") from None
+    kind = array.dtype.kind
+    if kind == "c":
+        raise TypeError(
+            f"{name} must be real, got complex values (dtype {array.dtype}); pass the real "
+            "part explicitly if that is what you mean"
+        )
+    if kind == "b":
+        raise TypeError(f"{name} must be a numeric array, got booleans (dtype {array.dtype})")
+    if kind not in _NUMERIC_KINDS and kind != "O":
+        raise TypeError(f"{name} must be a numeric array, got dtype {array.dtype}")
+    try:
+        array = np.array(array, dtype=float)  # a copy: inputs are never aliased
+    except (TypeError, ValueError) as exc:  # object arrays of non-numbers or complex
+        raise TypeError(f"{name} must be a numeric array of real numbers ({exc})") from None
     return array
 
 
@@ -61,12 +104,27 @@ def check_finite(array, name):
         raise ValueError(f"{name} contains non-finite values (NaN or inf)")
 
 
-def _stack(items, axis, name):
-    arrays = [as_float_array(item, f"{name}[{i}]") for i, item in enumerate(items)]
+def _item_name(name, index, labels=None):
+    """``name[index]``, or ``"<label>'s <name>"`` when the estimates have labels."""
+    if labels is None:
+        return f"{name}[{index}]"
+    return f"{labels[index]}'s {name}"
+
+
+def _stack(items, axis, name, labels=None, matrices=False):
+    names = [_item_name(name, i, labels) for i in range(len(items))]
+    arrays = [as_float_array(item, names[i]) for i, item in enumerate(items)]
+    if matrices:
+        for array, item_name in zip(arrays, names):
+            if array.ndim < 2 or array.shape[-1] != array.shape[-2]:
+                raise ValueError(
+                    f"{item_name} must be a square matrix (..., n, n), got shape {array.shape}"
+                )
     for i, array in enumerate(arrays[1:], start=1):
         if array.shape != arrays[0].shape:
             raise ValueError(
-                f"{name}[{i}] has shape {array.shape}, but {name}[0] has shape {arrays[0].shape}"
+                f"{names[i]} has shape {array.shape}, but {names[0]} has shape "
+                f"{arrays[0].shape} (estimates given as a sequence must have equal shapes)"
             )
     return np.stack(arrays, axis=axis)
 
@@ -75,43 +133,127 @@ def _is_sequence(value):
     return isinstance(value, (list, tuple))
 
 
-def check_covariances(P, name="Ps", L=None):
-    """Check a stack of covariances: square, finite, symmetric, positive definite.
+def _where(name, index, labels=None):
+    """Name of the matrix at ``index`` of a stack (..., N, n, n) of labelled estimates."""
+    if labels is None:
+        return f"{name}[{', '.join(map(str, index))}]" if index else name
+    where = _item_name(name, index[-1], labels)
+    return f"{where}[{', '.join(map(str, index[:-1]))}]" if len(index) > 1 else where
 
-    Returns the symmetrised copy and its Cholesky factors.
+
+def check_symmetric(P, name="Ps", *, labels=None):
+    """Check a stack of matrices: square, at least 1x1, finite and symmetric.
+
+    Parameters
+    ----------
+    P : ndarray, shape (..., n, n)
+        Float array (for instance from :func:`as_float_array`); not modified.
+    name : str, optional
+        Argument name for the messages.
+    labels : sequence of str, optional
+        Names of the estimates along axis -3 (then ``P`` is a stack (..., N, n, n)).
+
+    Returns
+    -------
+    ndarray
+        ``(P + P^T) / 2``, a new array.
+
+    Raises
+    ------
+    ValueError
+        Not square, n = 0, non-finite entries, or ``|P - P^T| > SYMMETRY_RTOL * max|P_ii|``
+        (the message names the first offending matrix).
     """
     if P.ndim < 2 or P.shape[-1] != P.shape[-2]:
         raise ValueError(f"{name} must hold square matrices (..., n, n), got shape {P.shape}")
     if P.shape[-1] == 0:
-        raise ValueError(f"{name} must hold matrices of dimension n >= 1")
-    check_finite(P, name)
+        raise ValueError(f"{name} must hold matrices of dimension n >= 1, got shape {P.shape}")
+    if P.size == 0:
+        raise ValueError(f"{name} is empty (shape {P.shape})")
+    if not np.all(np.isfinite(P)):
+        finite = np.isfinite(P).all(axis=(-2, -1))
+        index = np.unravel_index(int(np.argmin(finite.ravel())), finite.shape)
+        raise ValueError(
+            f"{_where(name, tuple(int(i) for i in index), labels)} contains non-finite values "
+            "(NaN or inf)"
+        )
     asymmetry = np.abs(P - np.swapaxes(P, -1, -2)).max(axis=(-2, -1))
     # The largest entry of a positive semidefinite matrix lies on its diagonal (and a
-    # matrix that is not PSD fails the Cholesky test below anyway).
+    # matrix that is not PSD fails the Cholesky test anyway).
     scale = np.abs(np.diagonal(P, axis1=-2, axis2=-1)).max(axis=-1)
     bad = asymmetry > SYMMETRY_RTOL * scale
     if np.any(bad):
         index = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
-        where = f"{name}[{', '.join(map(str, index))}]" if index else name
+        where = _where(name, tuple(int(i) for i in index), labels)
         raise ValueError(
             f"{where} is not symmetric (max |P - P^T| = {float(asymmetry[index]):.3g})"
         )
-    P = symmetrize(P)
-    return P, (cholesky(P, name) if L is None else L)
+    return symmetrize(P)
 
 
-def as_covariance_stack(Ps, name="Ps"):
+def check_covariances(P, name="Ps", L=None, *, labels=None):
+    """Check a stack of covariances: square, finite, symmetric, positive definite.
+
+    Parameters
+    ----------
+    P : ndarray, shape (..., n, n)
+        Float array; not modified.
+    name : str, optional
+        Argument name for the messages.
+    L : ndarray, optional
+        Cholesky factors if already known (then positive definiteness is not re-checked).
+    labels : sequence of str, optional
+        Names of the estimates along axis -3, used instead of ``name[i]`` in messages.
+
+    Returns
+    -------
+    P : ndarray
+        The symmetrised copy.
+    L : ndarray
+        Its lower Cholesky factors.
+
+    Raises
+    ------
+    ValueError
+        As :func:`check_symmetric`; or a matrix that is not positive definite (the message
+        gives its smallest eigenvalue).
+    IllConditionedError
+        A matrix that is positive semidefinite up to rounding but numerically singular (the
+        message gives its condition number).
+
+    Notes
+    -----
+    The success path costs one symmetry test and one batched Cholesky factorisation;
+    eigenvalues are computed only for the message of a failure.
+    """
+    P = check_symmetric(P, name, labels=labels)
+    if L is not None:
+        return P, L
+    if labels is None:
+        return P, cholesky(P, name)
+    try:
+        return P, cholesky(P, name)
+    except ValueError:  # failure path: find the estimate and name it by its label
+        for i in range(P.shape[-3]):
+            cholesky(P[..., i, :, :], _item_name(name, i, labels))
+        raise
+
+
+def as_covariance_stack(Ps, name="Ps", *, labels=None):
     """Convert a sequence of N covariances or an array (..., N, n, n) to an array."""
     if _is_sequence(Ps):
         if len(Ps) == 0:
             raise ValueError(f"{name} is empty")
-        return _stack(Ps, axis=-3, name=name)
-    P = as_float_array(Ps, name)
-    if P.ndim < 3:
-        raise ValueError(
-            f"{name} must be a sequence of covariance matrices or an array of shape "
-            f"(..., N, n, n), got shape {P.shape}"
-        )
+        P = _stack(Ps, axis=-3, name=name, labels=labels, matrices=True)
+    else:
+        P = as_float_array(Ps, name)
+        if P.ndim < 3:
+            raise ValueError(
+                f"{name} must be a sequence of covariance matrices or an array of shape "
+                f"(..., N, n, n), got shape {P.shape}"
+            )
+    if P.shape[-1] == 0:
+        raise ValueError(f"{name} must hold matrices of dimension n >= 1, got shape {P.shape}")
     return P
 
 
@@ -124,23 +266,24 @@ def vector_style(x, n):
     return None
 
 
-def as_mean_stack(xs, n, count, name="xs"):
+def as_mean_stack(xs, n, count, name="xs", *, labels=None):
     """Convert N means (sequence or array) to an array (..., N, n) and report their style."""
     if _is_sequence(xs):
         if len(xs) != count:
             raise ValueError(f"{name} has {len(xs)} estimates but the covariances have {count}")
         rows, column = [], None
         for i, item in enumerate(xs):
-            x = as_float_array(item, f"{name}[{i}]")
+            item_name = _item_name(name, i, labels)
+            x = as_float_array(item, item_name)
             style = vector_style(x, n)
             if style is None:
                 raise ValueError(
-                    f"{name}[{i}] must have shape (..., {n}) or (..., {n}, 1) to match its "
+                    f"{item_name} must have shape (..., {n}) or (..., {n}, 1) to match its "
                     f"{n}x{n} covariance, got shape {x.shape}"
                 )
             rows.append(x[..., 0] if style == "column" else x)
             column = (style == "column") if column is None else column
-        return _stack(rows, axis=-2, name=name), column
+        return _stack(rows, axis=-2, name=name, labels=labels), column
     x = as_float_array(xs, name)
     style = vector_style(x, n)
     if style == "column":
@@ -153,7 +296,7 @@ def as_mean_stack(xs, n, count, name="xs"):
     return x, style == "column"
 
 
-def as_estimates(xs, Ps, *, min_count=2, names=("xs", "Ps")):
+def as_estimates(xs, Ps, *, min_count=2, names=("xs", "Ps"), labels=None):
     """Validate N estimates and bring them to the canonical layout.
 
     Parameters
@@ -166,21 +309,39 @@ def as_estimates(xs, Ps, *, min_count=2, names=("xs", "Ps")):
         Smallest admissible N.
     names : tuple of str
         Argument names for the error messages.
+    labels : sequence of str, optional
+        Names of the N estimates (for instance ``("this filter", "other")``); messages
+        then say ``"other's P"`` instead of ``"Ps[1]"``.
 
     Returns
     -------
     Estimates
         ``x`` (..., N, n) and ``P`` (..., N, n, n) broadcast to a common batch shape,
-        Cholesky factors ``L`` and the vector style of the first input.
+        Cholesky factors ``L`` and the vector style of the first input. All new arrays:
+        the inputs are never modified or aliased.
+
+    Raises
+    ------
+    TypeError
+        Non-numeric, boolean or complex input.
+    ValueError
+        Fewer than ``min_count`` estimates, shapes that do not match, non-finite values,
+        covariances that are not symmetric or not positive definite (an
+        :class:`~cifilter._linalg.IllConditionedError` for numerically singular ones),
+        batch shapes that do not broadcast.
     """
     x_name, P_name = names
-    P = as_covariance_stack(Ps, P_name)
+    P = as_covariance_stack(Ps, P_name, labels=labels)
     count, n = P.shape[-3], P.shape[-1]
     if count < min_count:
         raise ValueError(f"at least {min_count} estimates are needed, got {count}")
-    x, column = as_mean_stack(xs, n, count, x_name)
-    check_finite(x, x_name)
-    P, L = check_covariances(P, P_name)
+    x, column = as_mean_stack(xs, n, count, x_name, labels=labels)
+    if not np.all(np.isfinite(x)):
+        finite = np.isfinite(x).all(axis=-1)
+        index = np.unravel_index(int(np.argmin(finite.ravel())), finite.shape)
+        where = _where(x_name, tuple(int(i) for i in index), labels)
+        raise ValueError(f"{where} contains non-finite values (NaN or inf)")
+    P, L = check_covariances(P, P_name, labels=labels)
     try:
         batch = np.broadcast_shapes(x.shape[:-2], P.shape[:-3])
     except ValueError:
@@ -210,32 +371,86 @@ def restore_style(x, column):
     return x[..., None] if column else x
 
 
-def check_weights(omega, count, name="omega"):
-    """Check weights on the probability simplex; a float means (omega, 1 - omega).
+def check_weights(omega, count, name="omega", *, batch_shape=None):
+    """Check weights on the probability simplex; a number means (omega, 1 - omega).
 
-    Returns an array (..., N) that sums to one along the last axis.
+    Parameters
+    ----------
+    omega : float or array_like, shape (..., N)
+        The weights; a real number (or 0-d array) only for two estimates.
+    count : int
+        The number N of estimates.
+    name : str, optional
+        Argument name for the messages.
+    batch_shape : tuple of int, optional
+        Batch shape of the estimates. When given, the weights' batch axes must broadcast
+        to it (they cannot add batch axes of their own) and the weights are returned
+        broadcast to ``batch_shape + (N,)``.
+
+    Returns
+    -------
+    ndarray, shape (..., N)
+        A new array of nonnegative weights that sum to one along the last axis.
+
+    Raises
+    ------
+    TypeError
+        Non-numeric, boolean or complex weights.
+    ValueError
+        Wrong last axis, non-finite values, weights off the simplex (beyond 1e-9), a
+        scalar for N != 2, batch axes that do not broadcast to ``batch_shape``.
     """
-    if isinstance(omega, numbers.Real) and not isinstance(omega, bool):
+    scalar = (isinstance(omega, numbers.Real) and not isinstance(omega, bool)) or (
+        isinstance(omega, np.ndarray) and omega.ndim == 0 and omega.dtype.kind in "iuf"
+    )
+    if scalar:
         if count != 2:
             raise ValueError(
                 f"a scalar {name} is only defined for two estimates; "
                 f"give an array of {count} weights"
             )
-        omega = [omega, 1.0 - float(omega)]
+        value = float(omega)
+        omega = [value, 1.0 - value]
     w = as_float_array(omega, name)
     if w.ndim == 0 or w.shape[-1] != count:
         raise ValueError(f"{name} must have shape (..., {count}), got shape {w.shape}")
     check_finite(w, name)
     tol = 1e-9
-    if np.any(w < -tol) or np.any(np.abs(w.sum(axis=-1) - 1.0) > tol):
-        raise ValueError(f"{name} must lie on the simplex (w_i >= 0, sum w_i = 1), got {w}")
+    bad = (w < -tol).any(axis=-1) | (np.abs(w.sum(axis=-1) - 1.0) > tol)
+    if np.any(bad):
+        index = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
+        where = f"{name}[{', '.join(map(str, index))}]" if index else name
+        raise ValueError(
+            f"{where} must lie on the simplex (w_i >= 0, sum w_i = 1), got {w[index]}"
+        )
+    if batch_shape is not None:
+        batch_shape = tuple(batch_shape)
+        try:
+            ok = np.broadcast_shapes(w.shape[:-1], batch_shape) == batch_shape
+        except ValueError:
+            ok = False
+        if not ok:
+            raise ValueError(
+                f"{name} has shape {w.shape}, whose batch axes {w.shape[:-1]} do not "
+                f"broadcast to the estimates' batch shape {batch_shape}; give shape "
+                f"({count},) or (..., {count}) with batch axes matching {batch_shape}"
+            )
     w = np.clip(w, 0.0, None)
-    return w / w.sum(axis=-1, keepdims=True)
+    w = w / w.sum(axis=-1, keepdims=True)
+    if batch_shape is not None and w.shape[:-1] != batch_shape:
+        w = np.array(np.broadcast_to(w, batch_shape + (count,)))
+    return w
 
 
 def check_scalar(value, name, *, low=None, high=None, low_open=False, high_open=False):
-    """Check a real scalar against an interval and return it as float."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+    """Check a real scalar against an interval and return it as float.
+
+    ``value`` is a real number or a 0-d integer or float array (not a bool); the
+    ``TypeError`` or ``ValueError`` names ``name`` and, for the interval, its bounds.
+    """
+    if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
+        value = value[()]
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
     value = float(value)
     if not np.isfinite(value):
@@ -295,8 +510,15 @@ def check_psd(value, size, name):
     if np.any(np.abs(M - np.swapaxes(M, -1, -2)) > SYMMETRY_RTOL * scale):
         raise ValueError(f"{name} must be symmetric")
     M = symmetrize(M)
+    # PSD up to -PSD_RTOL * max|M_ij| in the smallest eigenvalue. Success path: one
+    # Cholesky factorisation of the shifted matrix; eigenvalues only when it fails.
+    try:
+        np.linalg.cholesky(M + (PSD_RTOL * scale) * np.eye(size))
+        return M
+    except np.linalg.LinAlgError:
+        pass
     smallest = np.linalg.eigvalsh(M)[..., 0]
-    if np.any(smallest < -1e-10 * scale[..., 0, 0]):
+    if np.any(smallest < -PSD_RTOL * scale[..., 0, 0]):
         raise ValueError(
             f"{name} must be positive semidefinite (smallest eigenvalue {smallest.min():.3g})"
         )
@@ -307,7 +529,7 @@ def check_psd_weight_matrix(W, n, name="criterion"):
     """Check a symmetric positive semidefinite, nonzero weight matrix (..., n, n)."""
     W = as_float_array(W, name)
     if W.ndim < 2 or W.shape[-2:] != (n, n):
-        raise ValueError(f"{name} must be an {n}x{n} weight matrix, got shape {W.shape}")
+        raise ValueError(f"{name} must be a {n}x{n} weight matrix, got shape {W.shape}")
     W = check_psd(W, n, name)
     if np.any(np.abs(W).max(axis=(-2, -1)) == 0):
         raise ValueError(f"{name} must not be the zero matrix")

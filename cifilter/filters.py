@@ -10,8 +10,7 @@ from filterpy.kalman import KalmanFilter as _FilterpyKF
 from filterpy.kalman import UnscentedKalmanFilter as _FilterpyUKF
 
 from ._validation import as_estimates
-from .registry import _split_estimate
-from .registry import fuse as _fuse
+from .registry import _fuse, _split_estimate
 
 __all__ = ["ExtendedKalmanFilter", "FusionMixin", "KalmanFilter", "UnscentedKalmanFilter"]
 
@@ -38,10 +37,56 @@ def _as_estimate_list(other):
         (hasattr(o, "x") and hasattr(o, "P")) or _is_estimate_pair(o) for o in other
     ):
         return list(other)
+    if isinstance(other, (tuple, list)) and len(other) == 2 and not any(
+        hasattr(o, "P") or _is_estimate_pair(o) for o in other
+    ):
+        return [other]  # an (x, P) pair of the wrong shapes: the validation names them
     raise TypeError(
         "other must be a filter (an object with .x and .P), an (x, P) pair, or a non-empty "
         f"list of them; got {type(other).__name__}"
     )
+
+
+def _labels(count, other_is_list):
+    """Names of the estimates in messages: this filter, then other or other[i]."""
+    if not other_is_list:
+        return ("this filter", "other")
+    return ("this filter",) + tuple(f"other[{i}]" for i in range(count - 1))
+
+
+def _single_estimates(estimates, labels):
+    """(x, P) pairs of single estimates, with any x holding n numbers as a vector.
+
+    A filter's ``x`` may have any shape holding its n numbers (filterpy's (n, 1), the
+    UKF's (n,), or (1, n)); (n,) and (n, 1) pass unchanged, other shapes become (n,).
+    Batches (a covariance with more than two axes, an x with more than n numbers) are
+    rejected with a ``ValueError`` naming the estimate. Nothing is copied or modified here;
+    the validation of the fusion copies.
+    """
+    pairs = []
+    for i, item in enumerate(estimates):
+        x, P = _split_estimate(item, i)
+        try:
+            x_shape, P_shape = np.shape(x), np.shape(P)
+        except ValueError:  # ragged input: the validation names it
+            pairs.append((x, P))
+            continue
+        if len(P_shape) > 2:
+            raise ValueError(
+                f"{labels[i]}'s P has shape {P_shape}, a batch of covariances; a filter fuses "
+                "single estimates (use cifilter.fuse for batches)"
+            )
+        if len(P_shape) == 2 and P_shape[0] == P_shape[1]:
+            n, size = P_shape[0], int(np.prod(x_shape, dtype=int))
+            if size != n:
+                raise ValueError(
+                    f"{labels[i]}'s x has shape {x_shape} ({size} numbers), but its P is "
+                    f"{n}x{n}; a filter fuses single estimates whose x holds n numbers"
+                )
+            if x_shape not in ((n,), (n, 1)):
+                x = np.reshape(x, (n,))
+        pairs.append((x, P))
+    return pairs
 
 
 _MODEL_FIELDS = ("F", "Q", "H", "R", "G")
@@ -72,7 +117,7 @@ def _future_model(filt, future):
     return {name: get(name) for name in _MODEL_FIELDS}
 
 
-def _fuse_for_horizon(filt, estimates, method, horizon, future, options):
+def _fuse_for_horizon(filt, estimates, method, horizon, future, options, labels):
     """CI or partial CI with the weights chosen for ``horizon`` steps of the filter's model."""
     from .horizon import horizon_weights  # only filters that look ahead need it
 
@@ -97,15 +142,14 @@ def _fuse_for_horizon(filt, estimates, method, horizon, future, options):
     criterion = options.get("criterion", "trace")
     rho = options.get("rho")
     model = _future_model(filt, future)
-    pairs = [_split_estimate(item, i) for i, item in enumerate(estimates)]
-    stacked = as_estimates([pair[0] for pair in pairs], [pair[1] for pair in pairs],
-                           names=("estimates' x", "estimates' P"))
+    stacked = as_estimates([pair[0] for pair in estimates], [pair[1] for pair in estimates],
+                           names=("x", "P"), labels=labels)
     choice = horizon_weights(stacked.P, model["F"], model["Q"], model["H"], model["R"], horizon,
                              criterion=criterion, G=model.get("G"), rho=rho)
     if method == "ci":
-        result = _fuse(estimates, method="ci", criterion=criterion, omega=choice.omega)
+        result = _fuse(estimates, "ci", dict(criterion=criterion, omega=choice.omega), labels)
     else:
-        result = _fuse(estimates, method="pci", rho=rho, delta=choice.omega)
+        result = _fuse(estimates, "pci", dict(rho=rho, delta=choice.omega), labels)
     info = dict(result.info)
     info.update({
         "rule": "horizon",
@@ -148,7 +192,9 @@ class FusionMixin:
     def fuse(self, other, method="ci", *, horizon=None, future=None, **options):
         """Fuse this filter's estimate with other estimates whose correlation is unknown.
 
-        The filter's own ``(x, P)`` is the first input of the fusion rule. On success the
+        The filter's own ``(x, P)`` is the first input of the fusion rule; its ``x`` (and
+        that of the other estimates) may have any shape holding its n numbers, such as
+        filterpy's ``(n, 1)``, ``(n,)`` or ``(1, n)``. On success the
         filter's ``x`` and ``P`` are replaced by the fused estimate (``x`` keeps its
         filterpy shape), ``x_post`` and ``P_post`` are set to copies as ``update`` does,
         and the result is stored in ``last_fusion``. The operation is atomic: if the
@@ -200,7 +246,9 @@ class FusionMixin:
             positive definite, batched inputs, or a bad option value; ``horizon`` with a
             method other than ``"ci"`` and ``"pci"`` or together with ``omega`` (``"ci"``)
             or ``delta`` (``"pci"``), ``"pci"`` without ``rho``, ``future`` without
-            ``horizon``, a filter without a linear model and no ``future``.
+            ``horizon``, a filter without a linear model and no ``future``. Messages name
+            the estimate: ``"this filter's P"``, ``"other's x"`` or ``"other[i]'s P"`` (for a
+            list).
 
         Examples
         --------
@@ -226,11 +274,14 @@ class FusionMixin:
         >>> result.method, result.info["rule"], bool(result.info["converged"])
         ('pci', 'horizon', True)
         """
-        estimates = [(self.x, self.P)] + _as_estimate_list(other)
+        others = _as_estimate_list(other)
+        labels = _labels(1 + len(others), not (len(others) == 1 and others[0] is other))
+        estimates = _single_estimates([(self.x, self.P)] + others, labels)
         if horizon is not None or future is not None:
-            result = _fuse_for_horizon(self, estimates, method, horizon, future, options)
+            result = _fuse_for_horizon(self, estimates, method, horizon, future, options,
+                                       labels)
         else:
-            result = _fuse(estimates, method=method, **options)
+            result = _fuse(estimates, method, options, labels)
         x_shape = np.shape(self.x)
         x = np.asarray(result.x)
         if x.size != int(np.prod(x_shape)) or np.shape(result.P) != np.shape(self.P):
@@ -238,11 +289,10 @@ class FusionMixin:
                 f"fusion gave x of shape {x.shape} and P of shape {np.shape(result.P)}; a "
                 f"filter with x of shape {x_shape} fuses single (unbatched) estimates only"
             )
-        # Everything that can fail has run; now change the filter.
-        self.x = np.array(x.reshape(x_shape))
-        self.P = np.array(result.P)
-        self.x_post = self.x.copy()
-        self.P_post = self.P.copy()
+        # Everything that can fail (including the copies) has run; now change the filter.
+        x_new, P_new = np.array(x.reshape(x_shape)), np.array(result.P)
+        x_post, P_post = x_new.copy(), P_new.copy()
+        self.x, self.P, self.x_post, self.P_post = x_new, P_new, x_post, P_post
         self.last_fusion = result
         return result
 

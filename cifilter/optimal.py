@@ -5,13 +5,13 @@
 import numpy as np
 
 from ._information import weighted_information_fusion
-from ._linalg import cho_solve, spd_inverse
+from ._linalg import MAX_CONDITION, cho_inverse, cho_solve, symmetrize
 from ._validation import (
     as_estimates,
     as_float_array,
     as_mean_stack,
-    check_covariances,
     check_finite,
+    check_symmetric,
     restore_style,
 )
 from .registry import register_method
@@ -82,6 +82,145 @@ def _mean_layout(xs, dim):
     )
 
 
+# Rank tolerance of the singular-joint path: eigenvalues of the joint's difference block at
+# most RANK_RTOL * N*n * trace(joint) are rounding noise of an exactly singular joint.
+RANK_RTOL = 8 * np.finfo(float).eps
+
+
+def _stacked_identity(count, n):
+    """E = [I; ...; I], (N n, n)."""
+    return np.tile(np.eye(n), (count, 1))
+
+
+def _difference_basis(count, n):
+    """Orthonormal basis (N n, (N-1) n) of the null space of E^T (combinations of differences).
+
+    ``kron(H, I_n)`` with ``H`` (N, N-1) orthonormal and orthogonal to the ones vector.
+    """
+    ones = np.full((count, 1), 1.0 / np.sqrt(count))
+    Q, _ = np.linalg.qr(np.hstack([ones, np.eye(count)[:, :-1]]))
+    H = Q[:, 1:count]
+    return np.kron(H, np.eye(n))
+
+
+def _blue_cholesky(J, count, n):
+    """Eqs. (18)-(19) through Cholesky factors; None if the joint is (nearly) singular.
+
+    Used when the joint's Cholesky pivots show a condition number of at most
+    MAX_CONDITION (so always within the conditioning contract).
+    """
+    try:
+        L = np.linalg.cholesky(J)
+    except np.linalg.LinAlgError:
+        return None
+    pivots = np.diagonal(L, axis1=-2, axis2=-1)
+    if not np.all(np.isfinite(L)) or np.any(
+        pivots.min(axis=-1) * np.sqrt(MAX_CONDITION) < pivots.max(axis=-1)
+    ):
+        return None  # (max_i L_ii / min_i L_ii)^2 <= cond(J): certainly too ill-conditioned
+    E = _stacked_identity(count, n)
+    A = cho_solve(L, np.broadcast_to(E, L.shape[:-1] + (n,)))  # P_x^-1 E
+    information = symmetrize(np.swapaxes(A, -1, -2) @ E)  # E^T P_x^-1 E
+    try:
+        L_information = np.linalg.cholesky(information)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(L_information)):
+        return None
+    P = cho_inverse(L_information)
+    blocks = A.reshape(A.shape[:-2] + (count, n, n))  # block i: rows i*n..(i+1)*n of A
+    gains = P[..., None, :, :] @ np.swapaxes(blocks, -1, -2)  # K_i = P A_i^T
+    return gains, P
+
+
+def _blue_semidefinite(J, count, n, name):
+    """The BLUE for a positive semidefinite, possibly singular joint (failure-safe path).
+
+    In the orthonormal coordinates ``a = E^T x / sqrt(N)`` (the scaled mean of the
+    estimates) and ``b = B^T x`` (differences, free of the state because ``B^T E = 0``),
+    every unbiased fusion is ``x_0 = (a - G b) / sqrt(N)``; the minimiser of the error
+    covariance of eq. (13) is the regression ``G = J_ab J_bb^+`` and the error covariance is
+    ``K J K^T`` with ``K = (E^T / sqrt(N) - G B^T) / sqrt(N)`` (eq. (19) when J is
+    non-singular). The pseudo-inverse drops eigenvalues of ``J_bb`` at rounding level,
+    ``RANK_RTOL * N n * trace(J)``. The error covariance is unique; when ``J_bb`` is
+    singular the gains are not, and these are the minimum-norm ones.
+    """
+    # >= the largest eigenvalue of a PSD joint (its trace)
+    scale = np.abs(np.diagonal(J, axis1=-2, axis2=-1)).sum(axis=-1)
+    tol = RANK_RTOL * J.shape[-1] * scale
+    if np.any(scale == 0):
+        raise ValueError(f"{name} has a zero diagonal: the estimates have zero error "
+                         "covariance and there is nothing to fuse")
+    eigenvalues = np.linalg.eigvalsh(J)
+    smallest = eigenvalues[..., 0]
+    if np.any(smallest < -tol):
+        index = np.unravel_index(int(np.argmin((smallest / scale).ravel())), smallest.shape)
+        where = f"{name}[{', '.join(map(str, index))}]" if index else name
+        raise ValueError(
+            f"{where} is not positive semidefinite (smallest eigenvalue "
+            f"{float(smallest[index]):.3g}, largest {float(eigenvalues[index][-1]):.3g})"
+        )
+    E = _stacked_identity(count, n)
+    B = _difference_basis(count, n)
+    root = np.sqrt(count)
+    JB = J @ B
+    J_ab = (E.T @ JB) / root  # (..., n, (N-1) n)
+    J_bb = symmetrize(B.T @ JB)
+    mu, V = np.linalg.eigh(J_bb)
+    keep = mu > tol[..., None]
+    inverse_mu = np.divide(1.0, mu, out=np.zeros_like(mu), where=keep)
+    G = ((J_ab @ V) * inverse_mu[..., None, :]) @ np.swapaxes(V, -1, -2)
+    K = E.T / count - (G @ B.T) / root  # (..., n, N n), K E = I
+    P = symmetrize(K @ J @ np.swapaxes(K, -1, -2))
+    try:
+        np.linalg.cholesky(P)
+        defined = True
+    except np.linalg.LinAlgError:
+        defined = False
+    if not defined or not np.all(np.isfinite(P)):
+        fused = np.linalg.eigvalsh(P)
+        index = np.unravel_index(int(np.argmin((fused[..., 0] / fused[..., -1]).ravel())),
+                                 fused.shape[:-1])
+        where = f"{name}[{', '.join(map(str, index))}]" if index else name
+        raise ValueError(
+            f"{where} is singular in a way that leaves the fusion undefined: an unbiased "
+            "combination of the estimates has (numerically) zero error variance, so the "
+            "fused covariance is not positive definite (eigenvalues from "
+            f"{float(fused[index][0]):.3g} to {float(fused[index][-1]):.3g})"
+        )
+    gains = np.swapaxes(K.reshape(K.shape[:-1] + (count, n)), -2, -3)  # K_i, (..., N, n, n)
+    return gains, P
+
+
+def _optimal(x, column, J, count, n, name="joint"):
+    """BLUE of validated means (..., N, n) with a symmetric joint (..., N n, N n)."""
+    blue = _blue_cholesky(J, count, n)
+    singular = blue is None
+    gains, P = _blue_semidefinite(J, count, n, name) if singular else blue
+    batch = np.broadcast_shapes(x.shape[:-2], J.shape[:-2])
+    x_fused = np.einsum("...kij,...kj->...i", gains, x)
+    P = np.broadcast_to(P, batch + (n, n)).copy()
+    gains = np.broadcast_to(gains, batch + (count, n, n)).copy()
+    info = {"joint": "singular" if singular else "regular"}
+    return FusionResult(restore_style(x_fused, column), P, "optimal", None, gains, info)
+
+
+def _check_joint(joint, name="joint"):
+    J = as_float_array(joint, name)
+    if J.ndim < 2 or J.shape[-1] != J.shape[-2]:
+        raise ValueError(f"{name} must have shape (..., N*n, N*n), got shape {J.shape}")
+    return J
+
+
+def _batch(x_shape, J_shape, x_name="xs", J_name="joint"):
+    try:
+        return np.broadcast_shapes(x_shape, J_shape)
+    except ValueError:
+        raise ValueError(
+            f"batch shapes of {x_name} {x_shape} and {J_name} {J_shape} do not broadcast"
+        ) from None
+
+
 def optimal_fusion(xs, joint):
     """Best linear unbiased fusion with a known joint error covariance.
 
@@ -96,35 +235,55 @@ def optimal_fusion(xs, joint):
     ``W_1 = (P_22 - P_12^T)(P_11 - P_12 - P_12^T + P_22)^-1``. It is the minimum mean
     square error linear fusion, the yardstick for every rule that does not know ``P_x``.
 
+    ``P_x`` may be singular (positive semidefinite), as it is after two nodes have
+    exchanged and fused their estimates: the fusion is then the minimiser of eq. (13)
+    under the constraint (17), computed with a pseudo-inverse (see Notes). It is defined
+    whenever its error covariance is positive definite.
+
     Parameters
     ----------
     xs : sequence of array_like or array_like
         N >= 2 means, (..., n) or (..., n, 1) each, or one array (..., N, n).
     joint : array_like, shape (..., N*n, N*n)
-        Symmetric positive definite joint error covariance of the stacked estimates; its
-        diagonal blocks are the individual covariances.
+        Symmetric positive semidefinite joint error covariance of the stacked estimates;
+        its diagonal blocks are the individual covariances. Batch axes broadcast against
+        those of ``xs``.
 
     Returns
     -------
     FusionResult
-        ``method="optimal"``, ``P`` the error covariance of the fusion, ``gains`` the
-        ``K_i`` (the transposed blocks of ``W``, which sum to the identity),
-        ``omega=None``.
+        ``method="optimal"``, ``P`` the error covariance of the fusion (``K P_x K^T``),
+        ``gains`` the ``K_i`` (the transposed blocks of ``W``, which sum to the identity),
+        ``omega=None``, ``info["joint"]`` ``"regular"`` or ``"singular"`` (the path used).
 
     Raises
     ------
+    TypeError
+        Non-numeric, boolean or complex input.
     ValueError
-        ``joint`` not square, not of dimension N*n, not symmetric positive definite,
-        non-finite values, fewer than two estimates.
+        ``joint`` not square, not of dimension N*n, not symmetric, not positive
+        semidefinite (beyond rounding), non-finite values, fewer than two estimates, batch
+        shapes that do not broadcast, or a joint that leaves the fusion undefined (a
+        combination of the estimates with zero error variance).
 
     See Also
     --------
     naive_fusion : the special case of zero cross-covariances.
 
+    Notes
+    -----
+    When the Cholesky factor of ``P_x`` exists and its pivots do not show a condition
+    number above ``MAX_CONDITION`` (1e12), eqs. (18)-(20) are evaluated through Cholesky
+    solves. Otherwise (whole batch) the fusion is computed in the coordinates
+    ``a = E^T x / sqrt(N)`` and ``b = B^T x`` (``B`` an orthonormal basis of the
+    differences, ``B^T E = 0``): ``x_0 = (a - J_ab J_bb^+ b) / sqrt(N)``, the regression of
+    the mean on the differences, with ``J_bb^+`` the pseudo-inverse that drops eigenvalues
+    below ``8 eps N n trace(P_x)``. For a non-singular ``P_x`` both are the same fusion.
+
     References
     ----------
     .. [1] Z. Weng and P. M. Djurić, "A Bayesian approach to data fusion in sensor
-       networks", journal version, eqs. (18)-(20).
+       networks", journal version, eqs. (13)-(20).
     .. [2] Z. Weng and P. M. Djurić, "A Bayesian approach to covariance estimation and
        data fusion", EUSIPCO 2012, eqs. (4)-(6).
 
@@ -139,25 +298,21 @@ def optimal_fusion(xs, joint):
     >>> r = optimal_fusion([np.array([0.0]), np.array([1.0])], [[1.0, c], [c, 2.0]])
     >>> round(float(r.P[0, 0]), 6), round(1.5 / (3 - 2**0.5), 6)
     (0.945903, 0.945903)
+
+    Two nodes that have fused hold the same estimate; their joint is singular, and fusing
+    again gives the same estimate back:
+
+    >>> r = optimal_fusion([np.array([2.0]), np.array([2.0])], np.full((2, 2), 0.5))
+    >>> r.x.tolist(), r.P.tolist(), r.info["joint"]
+    ([2.0], [[0.5]], 'singular')
     """
-    P_joint = as_float_array(joint, "joint")
-    if P_joint.ndim < 2 or P_joint.shape[-1] != P_joint.shape[-2]:
-        raise ValueError(f"joint must have shape (..., N*n, N*n), got {P_joint.shape}")
-    count, n = _mean_layout(xs, P_joint.shape[-1])
+    J = _check_joint(joint)
+    count, n = _mean_layout(xs, J.shape[-1])
     x, column = as_mean_stack(xs, n, count, "xs")
     check_finite(x, "xs")
-    P_joint, L = check_covariances(P_joint, "joint")
-    batch = np.broadcast_shapes(x.shape[:-2], P_joint.shape[:-2])
-    stacked_identity = np.tile(np.eye(n), (count, 1))  # E, (N n, n)
-    A = cho_solve(L, np.broadcast_to(stacked_identity, L.shape[:-1] + (n,)))  # P_x^-1 E
-    information = np.swapaxes(A, -1, -2) @ stacked_identity  # E^T P_x^-1 E (symmetric)
-    P = spd_inverse(0.5 * (information + np.swapaxes(information, -1, -2)), "E^T joint^-1 E")
-    blocks = A.reshape(A.shape[:-2] + (count, n, n))  # block i: rows i*n..(i+1)*n of A
-    gains = P[..., None, :, :] @ np.swapaxes(blocks, -1, -2)  # K_i = P A_i^T
-    x_fused = np.einsum("...kij,...kj->...i", gains, x)
-    P = np.broadcast_to(P, batch + (n, n)).copy()
-    gains = np.broadcast_to(gains, batch + (count, n, n)).copy()
-    return FusionResult(restore_style(x_fused, column), P, "optimal", None, gains, {})
+    _batch(x.shape[:-2], J.shape[:-2])
+    J = check_symmetric(J, "joint")
+    return _optimal(x, column, J, count, n)
 
 
 def _registered_naive(xs, Ps):
@@ -166,19 +321,21 @@ def _registered_naive(xs, Ps):
 
 def _registered_optimal(xs, Ps, joint):
     count, n = Ps.shape[-3], Ps.shape[-1]
-    P_joint = as_float_array(joint, "joint")
-    if P_joint.shape[-2:] != (count * n, count * n):
+    J = _check_joint(joint)
+    if J.shape[-2:] != (count * n, count * n):
         raise ValueError(
             f"joint must have shape (..., {count * n}, {count * n}) for {count} estimates of "
-            f"dimension {n}, got {P_joint.shape}"
+            f"dimension {n}, got shape {J.shape}"
         )
+    _batch(Ps.shape[:-3], J.shape[:-2], "the estimates", "joint")
+    J = check_symmetric(J, "joint")
     blocks = np.stack(
-        [P_joint[..., i * n:(i + 1) * n, i * n:(i + 1) * n] for i in range(count)], axis=-3
+        [J[..., i * n:(i + 1) * n, i * n:(i + 1) * n] for i in range(count)], axis=-3
     )
     scale = np.abs(Ps).max()
     if not np.allclose(blocks, Ps, rtol=1e-8, atol=1e-12 * scale):
         raise ValueError("the diagonal blocks of joint must equal the covariances of the estimates")
-    return optimal_fusion(xs, P_joint)
+    return _optimal(xs, False, J, count, n)
 
 
 def _optimal_truth_options(joint, rng):

@@ -200,17 +200,33 @@ def get_method(name):
 
 
 def _check_options(record, options):
-    """Reject options the rule does not accept, naming them and the accepted ones."""
+    """Check the options against the rule's signature.
+
+    Rejects options the rule does not accept (naming them and the accepted ones) and
+    reports required options that are missing (naming them and the method), both as
+    ``TypeError`` before the rule runs.
+    """
     try:
         parameters = inspect.signature(record.function).parameters
     except (TypeError, ValueError):  # builtins without a signature: let the call decide
         return
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
-        return
-    accepted = [
-        name for name, p in list(parameters.items())[2:]
+    options_parameters = [
+        p for p in list(parameters.values())[2:]
         if p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
     ]
+    missing = [
+        p.name for p in options_parameters
+        if p.default is inspect.Parameter.empty and p.name not in options
+    ]
+    if missing:
+        example = ", ".join(f"{name}=..." for name in missing)
+        raise TypeError(
+            f"method {record.name!r} needs the option(s) {', '.join(map(repr, missing))}: "
+            f"fuse(estimates, method={record.name!r}, {example})"
+        )
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        return
+    accepted = [p.name for p in options_parameters]
     unknown = sorted(set(options) - set(accepted))
     if unknown:
         raise TypeError(
@@ -257,7 +273,9 @@ def fuse(estimates, method="ci", **options):
         bad shapes, non-finite, non-symmetric or non-positive-definite covariances, or an
         option out of range.
     TypeError
-        An estimate of the wrong kind or an option the rule does not accept.
+        An estimate of the wrong kind, non-numeric, boolean or complex values, an option
+        the rule does not accept or a required option that is missing (for instance
+        ``joint`` of ``"optimal"``).
 
     See Also
     --------
@@ -273,6 +291,15 @@ def fuse(estimates, method="ci", **options):
     >>> float(r.omega[0]), float(np.trace(r.P))
     (0.5, 3.2)
     """
+    return _fuse(estimates, method, options)
+
+
+def _fuse(estimates, method, options, labels=None):
+    """:func:`fuse` with optional labels of the estimates for the messages.
+
+    With ``labels`` (one string per estimate, e.g. ``("this filter", "other")``) messages
+    say ``"other's P"``; without, ``"estimates' P[1]"``.
+    """
     record = get_method(method)
     if isinstance(estimates, (str, bytes)) or not hasattr(estimates, "__len__"):
         raise TypeError(
@@ -281,10 +308,10 @@ def fuse(estimates, method="ci", **options):
     pairs = [_split_estimate(item, i) for i, item in enumerate(estimates)]
     if len(pairs) < 2:
         raise ValueError(f"at least 2 estimates are needed, got {len(pairs)}")
-    stacked = as_estimates(
-        [p[0] for p in pairs], [p[1] for p in pairs], names=("estimates' x", "estimates' P")
-    )
     _check_options(record, options)
+    names = ("estimates' x", "estimates' P") if labels is None else ("x", "P")
+    stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs], names=names,
+                           labels=labels)
     result = record.function(stacked.x, stacked.P, **options)
     if not isinstance(result, FusionResult):
         raise TypeError(

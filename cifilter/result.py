@@ -21,6 +21,52 @@ def _frozen(value):
     return array
 
 
+class _FrozenList(list):
+    """A list that cannot be changed (in a result's ``info``); equal to the plain list."""
+
+    def _read_only(self, *args, **kwargs):
+        raise TypeError("lists in FusionResult.info are read-only")
+
+    __setitem__ = __delitem__ = __iadd__ = __imul__ = _read_only
+    append = extend = insert = pop = remove = clear = sort = reverse = _read_only
+
+    def __reduce__(self):
+        return (_FrozenList, (list(self),))
+
+
+_IMMUTABLE = (str, bytes, int, float, bool, type(None), np.generic)
+
+
+def _frozen_info(value):
+    """A read-only copy of an ``info`` value: arrays read-only, containers frozen.
+
+    Mappings become read-only mappings, lists read-only lists and tuples tuples of frozen
+    items, recursively; other values (numbers, strings, numpy scalars) are kept.
+    """
+    if isinstance(value, _IMMUTABLE):  # the common case first: info is on every result
+        return value
+    if isinstance(value, np.ndarray):
+        return _frozen(value)
+    if isinstance(value, (dict, MappingProxyType)) or isinstance(value, Mapping):
+        return MappingProxyType({key: _frozen_info(item) for key, item in value.items()})
+    if isinstance(value, list):
+        return _FrozenList(_frozen_info(item) for item in value)
+    if type(value) is tuple:  # not NamedTuples, whose constructors take fields
+        return tuple(_frozen_info(item) for item in value)
+    return value
+
+
+def _thawed_info(value):
+    """Plain containers again (for pickling; the arrays stay as they are)."""
+    if isinstance(value, Mapping):
+        return {key: _thawed_info(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_thawed_info(item) for item in value]
+    if type(value) is tuple:
+        return tuple(_thawed_info(item) for item in value)
+    return value
+
+
 @dataclass(frozen=True, repr=False)
 class FusionResult:
     """Immutable result of a fusion rule.
@@ -43,20 +89,26 @@ class FusionResult:
         Matrices ``K_i`` with ``x = sum_i K_i x_i``.
     info : Mapping
         Diagnostics of the rule (criterion value, iterations, converged, ...); stored as a
-        read-only mapping.
+        read-only mapping in which every array is read-only, nested mappings are read-only
+        mappings and lists read-only lists.
 
     Notes
     -----
-    The arrays are read-only views and ``info`` is a read-only mapping, so a result can be
-    stored (for instance as ``kf.last_fusion``) without being changed by later code.
+    The arrays are read-only views and ``info`` is a read-only mapping whose arrays (also
+    inside nested mappings, lists and tuples) are read-only, so a result can be stored (for
+    instance as ``kf.last_fusion``) without being changed by later code. Results pickle and
+    copy; the copies are read-only too.
 
     Examples
     --------
     >>> import numpy as np
-    >>> from cifilter import fuse
+    >>> from cifilter import FusionResult, fuse
     >>> r = fuse([(np.zeros(2), np.eye(2)), (np.ones(2), 2 * np.eye(2))], method="naive")
     >>> r.method, r.x.round(4).tolist()
     ('naive', [0.3333, 0.3333])
+    >>> r = FusionResult(np.zeros(1), np.eye(1), "mine", info={"trace": {"P": np.ones(3)}})
+    >>> r.info["trace"]["P"].flags.writeable
+    False
     """
 
     x: np.ndarray
@@ -71,7 +123,7 @@ class FusionResult:
         object.__setattr__(self, "P", _frozen(self.P))
         object.__setattr__(self, "omega", _frozen(self.omega))
         object.__setattr__(self, "gains", _frozen(self.gains))
-        object.__setattr__(self, "info", MappingProxyType(dict(self.info)))
+        object.__setattr__(self, "info", _frozen_info(dict(self.info)))
 
     def __repr__(self):
         omega = None if self.omega is None else np.array2string(self.omega, precision=4)
@@ -83,7 +135,7 @@ class FusionResult:
     def __reduce__(self):
         # A mappingproxy does not pickle; rebuild from plain fields (copy and pickle work).
         return (FusionResult, (self.x, self.P, self.method, self.omega, self.gains,
-                               dict(self.info)))
+                               _thawed_info(self.info)))
 
     def replace(self, **changes):
         """Return a copy with some fields replaced (like ``dataclasses.replace``).

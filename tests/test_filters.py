@@ -188,3 +188,97 @@ def test_filters_pickle_and_copy_with_their_fusion_result():
     np.testing.assert_array_equal(clone.last_fusion.P, kf.last_fusion.P)
     deep = copy.deepcopy(kf)
     assert deep.last_fusion.method == "ci"
+
+
+def bit_snapshot(kf):
+    """Every attribute: the object itself and, for arrays, dtype, shape, flags and bytes."""
+    state = {}
+    for key, value in kf.__dict__.items():
+        if isinstance(value, np.ndarray):
+            state[key] = (value, value.dtype, value.shape, value.strides,
+                          value.flags.writeable, value.tobytes())
+        else:
+            state[key] = (value,)
+    return state
+
+
+def assert_bit_identical(kf, before):
+    after = bit_snapshot(kf)
+    assert after.keys() == before.keys()
+    for key, old in before.items():
+        new = after[key]
+        assert new[0] is old[0], key  # the same object, not a copy
+        assert new[1:] == old[1:], key  # and its bytes unchanged
+
+
+@pytest.mark.parametrize("other, options, error, message", [
+    ((np.array([1 + 5j, 0.0]), np.eye(2)), {}, TypeError, r"^other's x must be real"),
+    ((np.zeros(2), np.ones(2)), {}, ValueError,
+     r"^other's P must be a square matrix \(\.\.\., n, n\), got shape \(2,\)"),
+    ((np.zeros(2), np.eye(2, dtype=bool)), {}, TypeError, "^other's P must be a numeric array"),
+    ((np.zeros(2), -np.eye(2)), {}, ValueError, r"^other's P is not positive definite"),
+    ((np.zeros(2), np.ones((2, 2))), {}, ValueError, r"^other's P is too ill-conditioned"),
+    ([(np.zeros(2), np.eye(2)), (np.zeros(2), np.eye(2) + np.eye(2, k=1))], {}, ValueError,
+     r"^other\[1\]'s P is not symmetric"),
+    ((np.zeros(3), np.eye(3)), {}, ValueError,
+     r"other's P has shape \(3, 3\), but this filter's P has shape \(2, 2\)"),
+    ((np.zeros(2), np.stack([np.eye(2)] * 3)), {}, ValueError,
+     r"^other's P has shape \(3, 2, 2\), a batch"),
+    ((np.zeros((5, 2)), np.eye(2)), {}, ValueError, r"^other's x has shape \(5, 2\)"),
+    ((np.zeros(2), np.eye(2)), {"method": "optimal"}, TypeError,
+     r"'optimal' needs the option\(s\) 'joint'"),
+    ((np.zeros(2), np.eye(2)), {"method": "optimal", "joint": np.eye(4) + 0j}, TypeError,
+     "joint must be real"),
+    pytest.param((np.zeros(2), np.eye(2)), {"omega": [[0.5, 0.5], [0.5, 0.5]]}, ValueError,
+                 "omega has shape", marks=pytest.mark.xfail(
+                     strict=True, reason="ci.py must pass batch_shape to check_weights")),
+    ((np.zeros(2), np.eye(2)), {"omega": np.nan}, ValueError, "omega contains non-finite"),
+])
+def test_failed_fusion_is_named_and_leaves_the_filter_bit_identical(other, options, error,
+                                                                    message):
+    kf = make_kf(np.diag([1.0, 4.0]), x=[3.0, 4.0])
+    kf.fuse((np.zeros(2), np.eye(2)))  # so that last_fusion, x_post, P_post are set too
+    before = bit_snapshot(kf)
+    with pytest.raises(error, match=message):
+        kf.fuse(other, **options)
+    assert_bit_identical(kf, before)
+
+
+@pytest.mark.parametrize("own_x, own_P, message", [
+    (np.array([[1 + 1j], [0.0]]), np.eye(2), r"^this filter's x must be real"),
+    (np.zeros((2, 1)), np.ones((2, 2)), r"^this filter's P is too ill-conditioned"),
+    (np.zeros((2, 1)), np.array([[1.0, 2.0], [0.0, 1.0]]), r"^this filter's P is not symmetric"),
+    (np.zeros((2, 1)), np.diag([np.nan, 1.0]), r"^this filter's P contains non-finite"),
+])
+def test_problems_of_the_filter_itself_are_named_this_filter(own_x, own_P, message):
+    kf = make_kf(np.eye(2))
+    kf.x, kf.P = own_x, own_P
+    before = bit_snapshot(kf)
+    with pytest.raises((TypeError, ValueError), match=message):
+        kf.fuse((np.zeros(2), np.eye(2)))
+    assert_bit_identical(kf, before)
+
+
+@pytest.mark.parametrize("shape", [(1, 2), (2,), (2, 1)])
+def test_a_filter_whose_x_holds_n_numbers_in_any_shape_fuses(shape):
+    kf = make_kf(np.diag([1.0, 4.0]))
+    kf.x = np.zeros(shape)
+    other = KalmanFilter(dim_x=2, dim_z=1)
+    other.x, other.P = np.ones((1, 2)), np.diag([4.0, 1.0])
+    result = kf.fuse(other)
+    assert kf.x.shape == shape
+    np.testing.assert_allclose(kf.x.ravel(), [0.2, 0.8])
+    np.testing.assert_allclose(kf.P, 1.6 * np.eye(2))
+    assert result.method == "ci"
+    np.testing.assert_array_equal(other.x, [[1.0, 1.0]])  # other is not modified
+
+
+def test_fuse_does_not_modify_read_only_or_integer_inputs():
+    kf = make_kf(np.diag([1.0, 4.0]))
+    x, P = np.array([1, 1]), np.array([[4, 0], [0, 1]])
+    for array in (x, P):
+        array.flags.writeable = False
+    kf.fuse((x, P))
+    assert x.dtype.kind == "i" and P.dtype.kind == "i"
+    np.testing.assert_array_equal(P, [[4, 0], [0, 1]])
+    np.testing.assert_allclose(kf.x[:, 0], [0.2, 0.8])

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from cifilter._linalg import (
+    IllConditionedError,
     cho_inverse,
     cho_solve,
     cholesky,
@@ -101,3 +102,45 @@ def test_helpers_reject_bad_scalars_weights_and_rngs():
     with pytest.raises(TypeError, match="rng"):
         as_rng("seed")
     assert as_rng(3).integers(1000) == np.random.default_rng(3).integers(1000)
+
+
+def rotated(eigenvalues, angle=0.3):
+    c, s = np.cos(angle), np.sin(angle)
+    Q = np.array([[c, -s], [s, c]])
+    A = Q @ np.diag(eigenvalues) @ Q.T
+    return 0.5 * (A + A.T)
+
+
+@pytest.mark.parametrize("A", [
+    rotated([1e20, 17.0]),  # PD in exact arithmetic; rounding makes Cholesky fail
+    np.ones((2, 2)),  # PSD, singular
+    np.zeros((2, 2)),
+    np.diag([1.0, -1e-17]),  # indefinite by a rounding-level eigenvalue only
+])
+def test_numerically_singular_matrices_are_ill_conditioned_not_indefinite(A):
+    with pytest.raises(IllConditionedError, match=r"^P is too ill-conditioned for a Cholesky "
+                                                  r"factorisation: condition number"):
+        cholesky(A, "P")
+
+
+def test_the_failing_matrix_of_a_stack_is_named():
+    P = np.stack([np.eye(2), rotated([1e20, 17.0])])
+    with pytest.raises(IllConditionedError, match=r"^P\[1\] "):
+        cholesky(P, "P")
+    assert issubclass(IllConditionedError, ValueError)
+
+
+@pytest.mark.parametrize("A, smallest", [
+    (-np.eye(2), "-1"),
+    (np.array([[1.0, 2.0], [2.0, 1.0]]), "-1"),
+    (rotated([1e20, -1e10]), "-1e\\+10"),
+])
+def test_indefinite_matrices_say_not_positive_definite_with_the_smallest_eigenvalue(A, smallest):
+    with pytest.raises(ValueError, match=rf"^P is not positive definite \(smallest eigenvalue "
+                                         rf"{smallest}"):
+        cholesky(A, "P")
+
+
+def test_cholesky_success_path_is_unchanged_for_well_conditioned_stacks():
+    P = spd((3, 2), 4)
+    np.testing.assert_array_equal(cholesky(P, "P"), np.linalg.cholesky(P))

@@ -4,9 +4,16 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from strategies import assert_psd, covariance_sets, fused_error_covariance, joint_covariances
+from strategies import (
+    assert_psd,
+    covariance_sets,
+    fused_error_covariance,
+    ill_conditioned_spd,
+    joint_covariances,
+)
 
-from cifilter import covariance_intersection, fuse, naive_fusion, optimal_fusion
+from cifilter import KalmanFilter, covariance_intersection, fuse, naive_fusion, optimal_fusion
+from cifilter._linalg import IllConditionedError
 
 
 def block_diag(*blocks):
@@ -98,7 +105,7 @@ def test_column_vectors_and_layout_inference():
 @pytest.mark.parametrize("xs, joint, message", [
     ([np.zeros(2)] * 2, np.eye(5), "N\\*n"),
     (np.zeros((2, 2)), np.eye(5), "does not match"),
-    ([np.zeros(2)] * 2, np.ones((4, 4)), "not positive definite"),
+    ([np.zeros(2)] * 2, np.ones((4, 4)), "fusion undefined|leaves the fusion undefined"),
     ([np.zeros(2)] * 2, np.eye(4)[:3], "shape"),
     ([np.zeros(2)] * 2, np.full((4, 4), np.nan), "non-finite"),
 ])
@@ -122,3 +129,154 @@ def test_naive_fusion_by_hand():
     assert r.P[0, 0] == pytest.approx(2 / 3)
     assert r.x[0] == pytest.approx(1.0)
     assert r.omega is None and r.method == "naive"
+
+
+# ----------------------------------------------------------------- singular (PSD) joints
+def gain_matrix(result):
+    """[K_1 ... K_N], n x N*n."""
+    return np.concatenate(list(result.gains), axis=-1)
+
+
+def blue_formula(xs, joint):
+    """Eqs. (18)-(20) with explicit inverses (reference only)."""
+    count, n = len(xs), xs[0].shape[0]
+    E = np.tile(np.eye(n), (count, 1))
+    J_inv = np.linalg.inv(joint)
+    P = np.linalg.inv(E.T @ J_inv @ E)
+    return P @ E.T @ J_inv @ np.concatenate(xs), P
+
+
+def exchange_and_fuse(seed=5, n=3):
+    """Two filters with a known joint covariance exchange estimates and both fuse optimally.
+
+    Returns the filters and the joint covariance of their new errors, which is singular:
+    both hold the same estimate, e_a = K_a e and e_b = K_b e with K_a = K_b up to order.
+    """
+    g = np.random.default_rng(seed)
+    A = g.standard_normal((2 * n, 2 * n))
+    joint = A @ A.T + 0.1 * np.eye(2 * n)
+    a, b = KalmanFilter(dim_x=n, dim_z=1), KalmanFilter(dim_x=n, dim_z=1)
+    a.x, b.x = g.standard_normal((n, 1)), g.standard_normal((n, 1))
+    a.P, b.P = joint[:n, :n].copy(), joint[n:, n:].copy()
+    sent_a, sent_b = (a.x.copy(), a.P.copy()), (b.x.copy(), b.P.copy())
+    swapped = np.block([[joint[n:, n:], joint[n:, :n]], [joint[:n, n:], joint[:n, :n]]])
+    ra = a.fuse(sent_b, method="optimal", joint=joint)
+    rb = b.fuse(sent_a, method="optimal", joint=swapped)
+    K_a = gain_matrix(ra)  # over (e_a, e_b)
+    K_b = np.concatenate([rb.gains[1], rb.gains[0]], axis=-1)  # b's gains, reordered
+    cross = K_a @ joint @ K_b.T
+    new_joint = np.block([[a.P, cross], [cross.T, b.P]])
+    return a, b, new_joint
+
+
+def test_two_way_exchange_leaves_a_singular_joint():
+    a, b, joint = exchange_and_fuse()
+    np.testing.assert_allclose(a.x, b.x, rtol=1e-10, atol=1e-12)
+    eigenvalues = np.linalg.eigvalsh(joint)
+    assert abs(eigenvalues[0]) < 1e-13 * eigenvalues[-1]  # singular up to rounding
+
+
+def test_after_a_two_way_exchange_optimal_fusion_fuses_again():
+    a, b, joint = exchange_and_fuse()
+    x_before, P_before = a.x.copy(), a.P.copy()
+    r = a.fuse(b, method="optimal", joint=joint)  # old code: "not positive definite"
+    assert r.info["joint"] == "singular"
+    assert np.all(np.isfinite(r.x)) and np.all(np.isfinite(r.P))
+    np.testing.assert_array_equal(r.P, r.P.T)
+    np.linalg.cholesky(r.P)  # positive definite
+    # Nothing new was learnt: the same estimate and covariance.
+    np.testing.assert_allclose(r.x, x_before, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(r.P, P_before, rtol=1e-10, atol=1e-12)
+    # The fused error covariance is K J K^T for the gains returned.
+    K = gain_matrix(r)
+    np.testing.assert_allclose(K @ joint @ K.T, r.P, rtol=1e-12, atol=1e-14 * np.trace(joint))
+    np.testing.assert_allclose(r.gains.sum(axis=0), np.eye(3), atol=1e-12)
+    # The non-singular formula on a slightly regularised nearby joint agrees.
+    delta = 1e-9 * np.trace(joint) / 6
+    x_reg, P_reg = blue_formula([x_before[:, 0], b.x[:, 0]], joint + delta * np.eye(6))
+    np.testing.assert_allclose(r.P, P_reg, rtol=1e-6, atol=1e-6 * np.abs(r.P).max())
+    np.testing.assert_allclose(r.x[:, 0], x_reg, rtol=1e-6, atol=1e-6)
+
+
+def test_after_an_exchange_and_a_common_prediction_the_joint_is_still_singular_and_fuses():
+    a, b, joint = exchange_and_fuse(seed=9, n=2)
+    F, Q = np.array([[1.0, 1.0], [0.0, 1.0]]), np.diag([0.1, 0.2])
+    for kf in (a, b):
+        kf.F, kf.Q = F, Q
+        kf.predict()
+    FF = np.kron(np.eye(2), F)
+    joint = FF @ joint @ FF.T + np.kron(np.ones((2, 2)), Q)  # common process noise
+    r = optimal_fusion([a.x, b.x], joint)
+    assert r.info["joint"] == "singular"
+    np.testing.assert_allclose(r.P, a.P, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(r.x, a.x, rtol=1e-10, atol=1e-12)
+
+
+@given(covariance_sets(2, 2).flatmap(lambda Ps: st.tuples(st.just(Ps), joint_covariances(Ps))),
+       st.floats(0.0, 1.0))
+def test_fusing_with_a_copy_of_an_estimate_returns_it(Ps_joint, mix):
+    """Three estimates, the third a linear combination of the first two: J is singular."""
+    _, joint = Ps_joint
+    joint = joint + 0.05 * np.eye(4)
+    T = np.block([[np.eye(4)], [mix * np.eye(2), (1 - mix) * np.eye(2)]])  # x_3 = m x_1 + ...
+    big = T @ joint @ T.T
+    xs = [np.array([1.0, -1.0]), np.array([0.5, 2.0])]
+    xs.append(mix * xs[0] + (1 - mix) * xs[1])
+    r = optimal_fusion(xs, 0.5 * (big + big.T))
+    two = optimal_fusion(xs[:2], joint)
+    scale = np.abs(two.P).max()
+    np.testing.assert_allclose(r.P, two.P, rtol=1e-7, atol=1e-9 * scale)
+    np.testing.assert_allclose(r.x, two.x, rtol=1e-7, atol=1e-7 * (1 + np.abs(two.x).max()))
+    K = gain_matrix(r)
+    np.testing.assert_allclose(K @ big @ K.T, r.P, rtol=1e-7, atol=1e-9 * scale)
+
+
+def test_regular_joints_keep_the_exact_formula():
+    g = np.random.default_rng(11)
+    A = g.standard_normal((6, 6))
+    joint = A @ A.T + 0.5 * np.eye(6)
+    xs = list(g.standard_normal((3, 2)))
+    r = optimal_fusion(xs, joint)
+    x_ref, P_ref = blue_formula(xs, joint)
+    assert r.info["joint"] == "regular"
+    np.testing.assert_allclose(r.P, P_ref, rtol=1e-12)
+    np.testing.assert_allclose(r.x, x_ref, rtol=1e-12, atol=1e-14)
+
+
+@given(ill_conditioned_spd(4))
+def test_conditioning_contract_for_optimal_fusion(joint):
+    """cond(joint) <= 1e12: finite, symmetric, PD output, or IllConditionedError."""
+    try:
+        r = optimal_fusion([np.ones(2), -np.ones(2)], joint)
+    except IllConditionedError:
+        return
+    assert np.all(np.isfinite(r.x)) and np.all(np.isfinite(r.P))
+    np.testing.assert_array_equal(r.P, r.P.T)
+    np.linalg.cholesky(r.P)
+
+
+@pytest.mark.parametrize("xs, joint, error, message", [
+    (np.zeros((3, 2, 2)), np.broadcast_to(np.eye(4), (4, 4, 4)), ValueError,
+     r"batch shapes of xs \(3,\) and joint \(4,\) do not broadcast"),
+    ([np.zeros(2)] * 2, -np.eye(4), ValueError,
+     r"joint is not positive semidefinite \(smallest eigenvalue -1"),
+    ([np.zeros(2)] * 2, np.zeros((4, 4)), ValueError, "joint has a zero diagonal"),
+    ([np.zeros(2)] * 2, np.eye(4) + 0j, TypeError, "joint must be real"),
+    ([np.zeros(2)] * 2, np.eye(4, dtype=bool), TypeError, "joint must be a numeric array"),
+    ([np.zeros(2)] * 2, np.ones(4), ValueError, r"joint must have shape \(\.\.\., N\*n"),
+    ([np.zeros(2) + 1j, np.zeros(2)], np.eye(4), TypeError, r"xs\[0\] must be real"),
+])
+def test_bad_optimal_inputs_are_named(xs, joint, error, message):
+    with pytest.raises(error, match=message):
+        optimal_fusion(xs, joint)
+
+
+def test_fuse_optimal_names_batch_mismatch_and_missing_joint():
+    batch = [(np.zeros((3, 2)), np.eye(2)), (np.zeros((3, 2)), np.eye(2))]
+    with pytest.raises(ValueError, match=r"batch shapes of the estimates \(3,\) and joint "
+                                         r"\(4,\) do not broadcast"):
+        fuse(batch, "optimal", joint=np.broadcast_to(np.eye(4), (4, 4, 4)))
+    with pytest.raises(TypeError, match=r"'optimal' needs the option\(s\) 'joint'"):
+        fuse(batch, "optimal")
+    with pytest.raises(ValueError, match="joint contains non-finite"):
+        fuse(batch, "optimal", joint=np.full((4, 4), np.nan))

@@ -109,3 +109,44 @@ def test_replace_returns_a_new_result():
     s = r.replace(method="other")
     assert s.method == "other" and r.method == "ci"
     np.testing.assert_array_equal(s.P, r.P)
+
+
+def test_missing_required_option_names_the_option_and_the_method():
+    with pytest.raises(TypeError, match=r"method 'optimal' needs the option\(s\) 'joint'"):
+        fuse([(np.zeros(2), np.eye(2))] * 2, method="optimal")
+
+
+def test_required_options_of_user_rules_are_checked_generically(scratch_registry):
+    def scaled(xs, Ps, scale, *, offset, shift=0.0):
+        return FusionResult(xs[..., 0, :] + offset + shift, scale * Ps[..., 0, :, :], "scaled")
+
+    register_method("scaled", scaled)
+    expected = (r"method 'scaled' needs the option\(s\) 'scale', 'offset': "
+                r"fuse\(estimates, method='scaled', scale=\.\.\., offset=\.\.\.\)")
+    with pytest.raises(TypeError, match=expected):
+        fuse([(np.zeros(2), np.eye(2))] * 2, method="scaled")
+    with pytest.raises(TypeError, match=r"needs the option\(s\) 'offset'"):
+        fuse([(np.zeros(2), np.eye(2))] * 2, method="scaled", scale=2.0)
+    r = fuse([(np.zeros(2), np.eye(2))] * 2, method="scaled", scale=2.0, offset=1.0)
+    np.testing.assert_array_equal(r.x, [1.0, 1.0])
+
+
+def test_option_errors_come_before_the_validation_of_the_estimates():
+    # The option is the first thing wrong that the caller can see without computing.
+    with pytest.raises(TypeError, match="does not accept"):
+        fuse([(np.zeros(2), -np.eye(2))] * 2, method="ci", weights=1)
+
+
+@pytest.mark.parametrize("estimates, error, message", [
+    ([(np.array([1 + 5j, 0.0]), np.eye(2)), (np.zeros(2), np.eye(2))], TypeError,
+     r"estimates' x\[0\] must be real"),
+    ([(np.zeros(2), np.ones(2)), (np.zeros(2), np.ones(2))], ValueError,
+     r"estimates' P\[0\] must be a square matrix"),
+    ([(np.zeros(2), np.ones((2, 2))), (np.zeros(2), np.eye(2))], ValueError,
+     r"estimates' P\[0\] is too ill-conditioned.*condition number infinite"),
+    ([(np.zeros(2), np.eye(2, dtype=bool)), (np.zeros(2), np.eye(2))], TypeError,
+     r"estimates' P\[0\] must be a numeric array, got booleans"),
+])
+def test_bad_values_through_fuse_are_named(estimates, error, message):
+    with pytest.raises(error, match=message):
+        fuse(estimates)
