@@ -293,7 +293,8 @@ def ci_weights(Ps, criterion="trace", *, method="auto"):
     omega : ndarray, shape (..., N)
         The weights, on the simplex; optima on the boundary are exact.
     info : dict
-        ``iterations`` and ``converged`` per problem, ``solver``.
+        ``iterations``, ``converged`` (certified gap at most 1e-9) and ``gap`` per
+        problem, ``solver``.
 
     Raises
     ------
@@ -424,9 +425,12 @@ def covariance_intersection(xs, Ps, criterion="trace", omega=None):
     FusionResult
         ``x`` (..., n) or (..., n, 1) in the style of the first mean, ``P`` (..., n, n),
         ``omega`` (..., N), ``gains`` (..., N, n, n) with ``K_i = w_i P P_i^-1`` and
-        ``info`` with ``criterion``, ``value`` (criterion at the result), ``rule``
-        (``"optimal"``, ``"fixed"`` or the fast rule's name), and for optimal weights
-        ``iterations``, ``converged`` and ``solver``.
+        ``info`` with ``criterion``, ``value`` (criterion at the result; for ``"det"``
+        also ``log_value``, which does not overflow), ``rule`` (``"optimal"``,
+        ``"fixed"`` or the fast rule's name), and for optimal weights ``iterations``,
+        ``converged`` (the certified gap is at most 1e-9), ``gap`` (a certified bound on
+        the excess of the criterion over its minimum: relative for the trace criteria, in
+        log det for ``"det"``) and ``solver``.
 
     Raises
     ------
@@ -434,6 +438,10 @@ def covariance_intersection(xs, Ps, criterion="trace", omega=None):
         Fewer than two estimates, mismatched shapes, non-finite values, covariances that
         are not symmetric positive definite, weights off the simplex, an unknown criterion
         or fast rule.
+    IllConditionedError
+        (a ValueError) The fused information or the fused covariance is numerically
+        singular; only for inputs beyond the conditioning contract (condition numbers
+        above 1e12).
     TypeError
         Non-numeric input.
 
@@ -444,10 +452,17 @@ def covariance_intersection(xs, Ps, criterion="trace", omega=None):
 
     Notes
     -----
-    For two estimates the optimal weight comes from a simultaneous diagonalisation of
+    ``P`` is returned as the bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i``
+    (equal to ``(sum_i w_i P_i^-1)^-1`` in exact arithmetic), formed from Cholesky factors
+    without squaring a condition number: for input condition numbers up to 1e12 it is
+    finite, symmetric, positive definite and dominates the error covariance of the
+    returned gains for every cross-covariance, up to rounding (the conditioning contract).
+    For two estimates the optimal weight is proposed by a simultaneous diagonalisation of
     ``P_1`` and ``P_2`` that turns the criterion into a sum of scalar terms (one Newton
-    iteration costs O(n) per problem); for N > 2 an active-set Newton method on the
-    simplex is used. Both stop at exact boundary optima (``omega = 0`` or ``1``).
+    iteration costs O(n) per problem) and certified by its gap; problems it does not
+    certify are solved again from the Cholesky factors. For N > 2 an active-set Newton
+    method on the simplex is used. Both stop at exact boundary optima (``omega = 0`` or
+    ``1``). Derivations: ``docs/methods/ci.rst``, "Numerical formulation".
 
     References
     ----------

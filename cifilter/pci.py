@@ -7,9 +7,11 @@ and 5 is
     P^-1 = sum_i w_i P_i^-1,   K_i = w_i P P_i^-1,   w_i^-1 = rho_i / delta_i + 1 - rho_i,
 
 (eqs. (24), (33), (34); for two estimates eqs. (18)-(19) with ``delta_1 = 1 / (1 + gamma)``)
-with ``delta`` on the simplex chosen by the alternating projections of Algorithms 1 and 2
-(or, on request, by Newton's method on the same convex problem). ``rho = 1`` is standard
-CI (``w = delta``), ``rho = 0`` the naive fusion (``w_i = 1``).
+with ``delta`` on the simplex chosen by Newton's method on the convex problem (35) (or, on
+request, by the alternating projections of Algorithms 1 and 2). ``rho = 1`` is standard
+CI (``w = delta``), ``rho = 0`` the naive fusion (``w_i = 1``). The returned ``P`` is the
+Theorem 5 bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i`` (see
+``docs/methods/pci.rst``), so it is a bound whatever rounding went into the gains.
 """
 
 import numpy as np
@@ -253,7 +255,11 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=N
         P^-1 = sum_i w_i P_i^-1,   K_i = w_i P P_i^-1,   w_i^-1 = rho_i / delta_i + 1 - rho_i
 
     (eqs. (24), (33), (34)), ``delta`` on the simplex minimising ``Tr(P)``. ``P`` bounds the
-    covariance of the fused error for every joint covariance within the bound.
+    covariance of the fused error for every joint covariance within the bound; it is
+    returned as the Theorem 5 bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i``,
+    which equals eq. (33) in exact arithmetic and stays a bound, up to rounding of the
+    products, for input condition numbers up to 1e12 (the conditioning contract; beyond it
+    the rule answers within the contract or raises IllConditionedError).
 
     * Two estimates: Theorem 3 and Algorithm 1, alternating eqs. (18)-(19),
       ``P = ((1 + gamma rho)^-1 P_1^-1 + (1 + rho / gamma)^-1 P_2^-1)^-1``, with eq. (14),
@@ -279,20 +285,21 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=N
         per estimate (last axis N), or one per problem of a batch (last axis 1). Leading
         axes broadcast against the estimates' batch shape.
     tol : float, optional
-        Convergence tolerance (default 1e-10). The alternating projections stop when no
-        ``delta_i`` moved by more than ``tol`` in the last iteration and the certified
-        relative gap to the minimum trace (``info["gap"]``) is at most ``tol``; Newton's
-        method stops when its step is below ``tol``.
+        Convergence tolerance (default 1e-10): ``info["converged"]`` means that the
+        certified relative gap to the minimum trace (``info["gap"]``) is at most ``tol``
+        (the alternating projections also require that no ``delta_i`` moved by more than
+        ``tol`` in the last iteration).
     max_iter : int, optional
         Iteration limit (default 100). The bound is valid at every iterate; an unconverged
         problem (``info["converged"]`` False) only has a trace that may not be minimal,
         by at most ``info["gap"]`` relative.
-    solver : {"alternating", "newton"}, optional
-        ``"alternating"`` (default): the paper's alternating projections, Algorithm 1 for
-        two estimates and Algorithm 2 for more. ``"newton"``: minimise ``Tr(P)`` over
-        ``delta`` (problem (35)) by an active-set Newton method on the simplex; the same
-        optimum in a few iterations, also where the alternating projections converge
-        slowly (an optimum on the boundary of the simplex, where an estimate is ignored).
+    solver : {"newton", "alternating"}, optional
+        ``"newton"`` (default): minimise ``Tr(P)`` over ``delta`` (problem (35)) by an
+        active-set Newton method on the simplex, stopping each problem at a certified gap;
+        a few iterations whatever N and ``rho``, exact on the boundary of the simplex
+        (where an estimate is ignored). ``"alternating"``: the paper's alternating
+        projections, Algorithm 1 for two estimates and Algorithm 2 for more (linear
+        convergence: hundreds of iterations where an estimate is nearly ignored).
     delta : array_like, shape (..., N), or float, optional
         Fuse with these ``delta`` (on the simplex; a float ``d`` means ``(d, 1 - d)`` for
         two estimates) instead of the trace-optimal ones, as ``omega=`` does for
@@ -322,7 +329,9 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=N
         Fewer than two estimates, mismatched shapes, non-finite values, covariances that
         are not symmetric positive definite, ``rho`` outside [0, 1] or of the wrong length,
         ``tol`` not positive, ``max_iter`` below 1, an unknown ``solver``, ``delta`` off
-        the simplex or of the wrong shape.
+        the simplex or of the wrong shape. :class:`~cifilter.IllConditionedError` (a
+        ValueError) where the fused information or covariance is numerically singular
+        (only beyond the conditioning contract, input condition numbers above 1e12).
     TypeError
         Non-numeric input, a non-integer ``max_iter``.
 
