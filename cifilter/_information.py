@@ -152,9 +152,15 @@ def information_factors(L_inv, weights, *, failures="raise"):
     IllConditionedError
         The fused information matrix is numerically singular.
     """
-    weighted = np.sqrt(weights)[..., None, None] * L_inv
-    # (matmul and sum rather than einsum: several times faster on stacks of small matrices)
-    J = symmetrize((np.swapaxes(weighted, -1, -2) @ weighted).sum(axis=-3))
+    # Loops run over the N estimates, never over the batch: on stacks of small matrices a
+    # matmul per estimate is faster than einsum or a reduction over the estimate axis.
+    count = L_inv.shape[-3]
+    J = None
+    for k in range(count):
+        Lk = L_inv[..., k, :, :]
+        term = weights[..., k, None, None] * (np.swapaxes(Lk, -1, -2) @ Lk)
+        J = term if J is None else J + term
+    # (potrf reads one triangle only: J need not be symmetrised)
     R = checked_cholesky(J, "the fused information matrix", failures=failures)
     R_inv = lower_inverse_stack(R)
     C = R_inv[..., None, :, :] @ np.swapaxes(L_inv, -1, -2)
@@ -197,24 +203,36 @@ def weighted_fusion(x, L, weights, L_inv=None, factors=None):
     if factors is None:
         factors = information_factors(L_inv, weights)
     B = factors.B
-    w = weights[..., None, None]
-    gains = w * (B @ L_inv)  # K_i = w_i P P_i^-1
-    # The gains sum to I in exact arithmetic; make it hold to rounding by giving the
-    # estimate of largest weight the remainder, so that the fused mean is unbiased and
-    # the error is exactly sum_i K_i e_i, the quantity the bound below is about.
     n, count = x.shape[-1], x.shape[-2]
+    # K_i = w_i P P_i^-1 = w_i B_i L_i^-1. The gains sum to I in exact arithmetic; make it
+    # hold to rounding by giving the estimate of largest weight the remainder, so that the
+    # fused mean is unbiased and the error is exactly sum_i K_i e_i, the quantity the bound
+    # below is about.
     reference = np.argmax(weights, axis=-1)
-    mine = np.arange(count) == reference[..., None]
-    others = np.where(mine[..., None, None], 0.0, gains)
-    remainder = np.eye(n) - others.sum(axis=-3)
-    gains = np.where(mine[..., None, None], remainder[..., None, :, :], others)
+    gains = np.empty(B.shape)
+    remainder = np.broadcast_to(np.eye(n), B.shape[:-3] + (n, n)).copy()
+    for k in range(count):
+        mine = (reference == k)[..., None, None]
+        K = B[..., k, :, :] @ L_inv[..., k, :, :]
+        K = np.where(mine, 0.0, weights[..., k, None, None] * K)
+        gains[..., k, :, :] = K
+        remainder -= K
     x_ref = np.take_along_axis(x, reference[..., None, None], axis=-2)[..., 0, :]
-    x_fused = x_ref + (others @ (x - x_ref[..., None, :])[..., None]).sum(axis=-3)[..., 0]
-    # The bound of these gains: sum_i K_i P_i K_i^T / w_i = sum_i (K_i L_i)(K_i L_i)^T / w_i.
-    M = gains @ L
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scaled = np.where(w > 0.0, M / np.sqrt(np.where(w > 0.0, w, 1.0)), 0.0)
-    P = symmetrize((scaled @ np.swapaxes(scaled, -1, -2)).sum(axis=-3))
+    x_fused = x_ref.copy()
+    for k in range(count):
+        mine = (reference == k)[..., None, None]
+        gains[..., k, :, :] = np.where(mine, remainder, gains[..., k, :, :])
+        x_fused += (gains[..., k, :, :] @ (x[..., k, :] - x_ref)[..., None])[..., 0] * (
+            reference != k)[..., None]
+    # The bound of these gains: sum_i K_i P_i K_i^T / w_i = sum_i (K_i L_i)(K_i L_i)^T / w_i,
+    # a sum of outer products (zero weight: zero gain, no term).
+    P = np.zeros(B.shape[:-3] + (n, n))
+    for k in range(count):
+        w = weights[..., k, None, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            M = np.where(w > 0.0, (gains[..., k, :, :] @ L[..., k, :, :]) / np.sqrt(w), 0.0)
+        P += M @ np.swapaxes(M, -1, -2)
+    P = symmetrize(P)
     return WeightedFusion(x_fused, P, gains, factors)
 
 

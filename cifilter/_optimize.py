@@ -137,6 +137,9 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
     iterations = np.zeros(shape, dtype=int)
     eye = np.eye(count)
     finished = np.zeros(shape, dtype=bool)  # stalled at the rounding level, unconverged
+    previous_d = np.zeros(shape + (count,))  # the last step's direction, length and slope
+    previous_t = np.zeros(shape)
+    previous_slope = np.zeros(shape)
     for _ in range(max_iter):
         if (done | finished).all():
             break
@@ -169,6 +172,19 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
 
         small_step = np.abs(d).max(axis=-1) < xtol
         slope = np.einsum("...i,...i->...", g, d)
+        extend = np.zeros(shape, dtype=bool)
+        if gtol > 0.0:
+            # A step after which the derivative along its direction kept more than half of
+            # its slope went nowhere near the minimum along that line: f is nearly linear
+            # there and the Hessian overstates its curvature (ill-conditioned, nearly tied
+            # inputs). Continue along the same line instead, by the secant of the
+            # derivative, up to the boundary; Newton resumes once the line is done.
+            now = np.einsum("...i,...i->...", g, previous_d)
+            extend = (active & (previous_t > 0.0) & (previous_slope < 0.0)
+                      & (now < 0.5 * previous_slope))
+            d = np.where(extend[..., None], previous_d, d)
+            slope = np.where(extend, now, slope)
+            small_step = small_step & ~extend
         # -g.d = d^T H d, the squared Newton decrement. Below the rounding level of f the face
         # is solved to working precision even if d exceeds xtol (flat, badly scaled problems):
         # the line search cannot tell a decrease from rounding noise there and would stall
@@ -185,9 +201,11 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
             # towards the vertices of smallest gradient takes over there. A decrement
             # below the rounding level of f is a step the line search cannot judge: it is
             # taken as it is, and the gap at the next iterate decides.
+            # A Newton direction that is not a descent direction (curvature at the rounding
+            # level of the Hessian, of either sign) is replaced likewise.
             converged_now = np.zeros(shape, dtype=bool)
-            stuck = active & small_step & ~release_any
-            last = active & rounding & ~small_step & ~release_any
+            stuck = active & (small_step | (slope >= 0.0)) & ~release_any
+            last = active & rounding & ~stuck & ~release_any
         else:
             converged_now = active & small & ~release_any
             stuck = np.zeros(shape, dtype=bool)
@@ -216,12 +234,33 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
             ratio = np.where(free & (d < 0), w / -d, np.inf)
         t_max = ratio.min(axis=-1)
         t = np.minimum(1.0, t_max)
+        if extend.any():
+            with np.errstate(divide="ignore", invalid="ignore"):
+                further = np.where(slope > previous_slope,
+                                   previous_t * slope / (previous_slope - slope), t_max)
+            t = np.where(extend, np.clip(np.nan_to_num(further, nan=0.0), 0.0, t_max), t)
+        by_slope = (last | stuck) & ~extend if gtol > 0.0 else np.zeros(shape, dtype=bool)
+        if by_slope.any():
+            # Where f is flat to its rounding level along d, its values cannot place the
+            # step but its directional derivative can (the gradient stays accurate): a
+            # secant step on phi'(t) = g(w + t d).d from phi'(0) and phi'(t_1),
+            # t_1 = min(1, t_max), extrapolated up to the boundary where phi' has not
+            # grown (f nearly linear along d).
+            t_1 = np.minimum(1.0, t_max)
+            trial = np.where(by_slope[..., None], np.clip(w + t_1[..., None] * d, 0.0, None), w)
+            _, g_1, _ = evaluate(trial)
+            s_1 = np.einsum("...i,...i->...", g_1, d)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                secant = np.where(s_1 > slope, t_1 * -slope / (s_1 - slope), t_max)
+            secant = np.clip(np.where(np.isnan(secant), 0.0, secant), 0.0, t_max)
+            t = np.where(by_slope, secant, t)
         failed = np.zeros(shape, dtype=bool)
         for _ in range(60):  # Armijo backtracking, batched
             trial = np.where(stepping[..., None], w + t[..., None] * d, w)
             trial = np.clip(trial, 0.0, None)
             f_trial = objective(trial)
-            failed = stepping & ~last & ~(f_trial <= f + 1e-4 * t * slope + 1e-15 * np.abs(f))
+            failed = stepping & ~last & ~by_slope & ~(
+                f_trial <= f + 1e-4 * t * slope + 1e-15 * np.abs(f))
             if not failed.any():
                 break
             t = np.where(failed, 0.5 * t, t)
@@ -232,6 +271,9 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         stepping = stepping & ~stalled
         finished |= stalled
         blocked = stepping & (t == t_max)
+        previous_d = d
+        previous_t = np.where(stepping & ~blocked, t, 0.0)
+        previous_slope = slope
         new_w = np.where(stepping[..., None], w + t[..., None] * d, w)
         hit = blocked[..., None] & (ratio == t_max[..., None])
         new_w = np.where(hit, 0.0, np.clip(new_w, 0.0, None))

@@ -10,6 +10,8 @@ cross-covariance of the inputs. The weights are chosen by minimising a criterion
 ``P`` (trace, determinant or ``trace(W P)``) or by a fast non-iterative rule.
 """
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ._information import (
@@ -21,7 +23,6 @@ from ._information import (
 )
 from ._linalg import (
     cholesky,
-    diagonalise_pair,
     logdet_from_cholesky,
     symmetrize,
 )
@@ -94,7 +95,10 @@ def _improved_fast_weights(est):
     total = symmetrize(informations.sum(axis=-3))
     log_total = logdet_from_cholesky(cholesky(total, "sum of information matrices"))
     log_own = -logdet_from_cholesky(est.L)
-    others = symmetrize(total[..., None, :, :] - informations)
+    # sum_{j != i} I_j summed directly: total - I_i cancels when the scales differ widely
+    count = informations.shape[-3]
+    others = np.stack([sum(informations[..., j, :, :] for j in range(count) if j != i)
+                       for i in range(count)], axis=-3)
     log_others = logdet_from_cholesky(cholesky(others, "sum of the other information matrices"))
     own = np.exp(log_own - log_total[..., None])
     rest = np.exp(log_others - log_total[..., None])
@@ -154,7 +158,33 @@ def _certified_gap(weights, g, value, kind):
     return gap if kind == "det" else gap / value
 
 
-def _diagonalised_weights(est, kind, W):
+# The diagonalised two-estimate solver is trusted (its gap and its assembly used as they
+# are) where the eigenvalues it rests on are accurate: their spread, and the squared
+# diagonal spread of both Cholesky factors, at most this (rounding of eps * 1e6 = 2e-10
+# relative, well below GAP_TOL). Elsewhere the Cholesky-based path decides.
+_DIAGONAL_TRUST = 1e6
+
+
+class _Diagonalised(NamedTuple):
+    """The two-estimate problem in the basis that diagonalises both covariances."""
+
+    omega: np.ndarray  # (...,) proposed weight of the first estimate
+    iterations: np.ndarray  # (...,)
+    trusted: np.ndarray  # (...,) bool: accurate enough to certify and assemble from
+    gap: np.ndarray  # (...,) certified gap from the diagonal form (valid where trusted)
+    lam: np.ndarray  # (..., n) generalised eigenvalues of (P_2, P_1)
+    U: np.ndarray  # (..., n, n) eigenvectors of L_1^-1 P_2 L_1^-T
+    T: np.ndarray  # (..., n, n) L_1 U: P_1 = T T^T, P_2 = T diag(lam) T^T
+
+
+def _spread_squared(L):
+    """(max / min |diagonal|)^2 of triangular factors: a lower bound of the condition number."""
+    d = np.abs(np.diagonal(L, axis1=-2, axis2=-1))
+    with np.errstate(divide="ignore"):
+        return (d.max(axis=-1) / d.min(axis=-1)) ** 2
+
+
+def _diagonalised_weights(est, kind, W, L_inv):
     """Criterion-optimal omega for N = 2 by simultaneous diagonalisation (the fast path).
 
     With P_1 = L L^T and L^-1 P_2 L^-T = U diag(lam) U^T, T = L U gives
@@ -162,16 +192,20 @@ def _diagonalised_weights(est, kind, W):
     is a sum of scalar terms: trace(W P) = sum_k c_k d_k with c = diag(T^T W T), and
     log det P = log det P_1 + sum_k log(d_k / lam_k) + const. Both are convex in omega;
     the derivative is closed-form and its root is found by safeguarded Newton iterations,
-    O(n) per iteration. The eigenvalues ``lam`` are those of a matrix whose condition number
-    is up to cond(P_1) cond(P_2), so for ill-conditioned pairs they are rounding noise: the
-    caller certifies the result (:func:`_certified_gap`) and re-solves what fails.
-    Problems whose eigenvalues are not even positive get omega = 1/2 and are flagged.
+    O(n) per iteration. With ``w = (omega, 1 - omega)`` the certified gap
+    (:func:`_certified_gap`) is ``omega max(f', 0) + (1 - omega) max(-f', 0)``.
+    The eigenvalues ``lam`` are those of a matrix whose condition number is up to
+    cond(P_1) cond(P_2), so for ill-conditioned pairs they are rounding noise: such
+    problems are not ``trusted`` and the caller solves them from Cholesky factors.
     """
-    pair = diagonalise_pair(est.L[..., 0, :, :], est.P[..., 1, :, :])
+    L1_inv = L_inv[..., 0, :, :]
+    S = symmetrize(L1_inv @ est.P[..., 1, :, :] @ np.swapaxes(L1_inv, -1, -2))
+    lam, U = np.linalg.eigh(S)
+    T = est.L[..., 0, :, :] @ U
     n, size = est.dim, int(np.prod(est.batch_shape, dtype=int))
-    lam = pair.lam.reshape(size, n)
-    usable = np.all(lam > 0.0, axis=-1) & np.all(np.isfinite(lam), axis=-1)
-    a = np.where(usable[:, None], lam - 1.0, 0.0)
+    lam_flat = lam.reshape(size, n)
+    usable = np.all(lam_flat > 0.0, axis=-1) & np.all(np.isfinite(lam_flat), axis=-1)
+    a = np.where(usable[:, None], lam_flat - 1.0, 0.0)
     if kind == "det":
 
         def derivatives(omega, index):
@@ -181,9 +215,9 @@ def _diagonalised_weights(est, kind, W):
         scale = np.full(size, float(n))
     else:
         if kind == "trace":
-            c = np.square(pair.T).sum(axis=-2)
+            c = np.square(T).sum(axis=-2)
         else:
-            c = np.einsum("...ik,...ij,...jk->...k", pair.T, W, pair.T)
+            c = np.einsum("...ik,...ij,...jk->...k", T, W, T)
         c = np.broadcast_to(c, est.batch_shape + (n,)).reshape(size, n)
         ca = c * (a + 1.0) * a
 
@@ -193,10 +227,52 @@ def _diagonalised_weights(est, kind, W):
             return -term.sum(axis=-1), 2.0 * (term * a[index] / den).sum(axis=-1)
 
         scale = (c * (a + 1.0)).sum(axis=-1) + c.sum(axis=-1)  # tr(W P_2) + tr(W P_1)
-    with np.errstate(all="ignore"):  # noise eigenvalues: the result is certified anyway
+    with np.errstate(all="ignore"):  # noise eigenvalues: such problems are not trusted
         omega, iterations, _ = minimize_convex_interval(derivatives, size, scale=scale)
-    omega = np.where(usable & np.isfinite(omega), omega, 0.5)
-    return omega.reshape(est.batch_shape), iterations.reshape(est.batch_shape)
+        omega = np.where(usable & np.isfinite(omega), omega, 0.5)
+        slope, _ = derivatives(omega, np.arange(size))
+        gap = omega * np.maximum(slope, 0.0) + (1.0 - omega) * np.maximum(-slope, 0.0)
+        if kind != "det":
+            gap = gap / (c * (a + 1.0) / (1.0 + omega[:, None] * a)).sum(axis=-1)
+        spread = lam_flat.max(axis=-1) / lam_flat.min(axis=-1)
+    conditioning = np.maximum(_spread_squared(est.L[..., 0, :, :]),
+                              _spread_squared(est.L[..., 1, :, :])).reshape(size)
+    trusted = (usable & (spread <= _DIAGONAL_TRUST) & (conditioning <= _DIAGONAL_TRUST)
+               & np.isfinite(gap))
+    shape = est.batch_shape
+    return _Diagonalised(omega.reshape(shape), iterations.reshape(shape),
+                         trusted.reshape(shape), np.where(trusted, gap, np.inf).reshape(shape),
+                         lam, U, T)
+
+
+def _fuse_diagonalised(est, L_inv, d, weights):
+    """CI of two estimates from their diagonalisation, as the bound of its gains.
+
+    ``K_1 = omega P P_1^-1 = omega T diag(e) U^T L_1^-1`` with
+    ``e_k = lam_k / (1 + omega (lam_k - 1))`` (because ``T^T L_1^-T = U^T``), ``K_2 = I - K_1``,
+    and ``P = K_1 P_1 K_1^T / omega + K_2 P_2 K_2^T / (1 - omega)`` (the bound of these
+    gains; see ``_information``), with ``K_1 L_1 = omega T diag(e) U^T``. Used only where
+    the diagonalisation is trusted; two matrix products cheaper than the general assembly.
+    """
+    omega = weights[..., 0]
+    n = est.dim
+    e = d.lam / (1.0 + omega[..., None] * (d.lam - 1.0))
+    TE = d.T * e[..., None, :]
+    K1 = omega[..., None, None] * (TE @ (np.swapaxes(d.U, -1, -2) @ L_inv[..., 0, :, :]))
+    # An ignored estimate gets a gain of exactly zero (its term is not in the bound)
+    K1 = np.where((omega == 1.0)[..., None, None], np.eye(n), K1)
+    K2 = np.eye(n) - K1
+    M1 = K1 @ est.L[..., 0, :, :]
+    M2 = K2 @ est.L[..., 1, :, :]
+    P = np.zeros(M1.shape)
+    for M, w in ((M1, omega), (M2, 1.0 - omega)):
+        w = w[..., None, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            M = np.where(w > 0.0, M / np.sqrt(w), 0.0)
+        P += M @ np.swapaxes(M, -1, -2)
+    x1, x2 = est.x[..., 0, :], est.x[..., 1, :]
+    x = x2 + (K1 @ (x1 - x2)[..., None])[..., 0]
+    return x, symmetrize(P), np.stack([K1, K2], axis=-3)
 
 
 def _interval_weights(L_inv, kind, W, scale):
@@ -317,15 +393,15 @@ def ci_weights(Ps, criterion="trace", *, method="auto"):
 
 
 def _optimal_weights(est, kind, W, method="auto", L_inv=None):
-    """Criterion-optimal weights, certified: ``(weights, info, fused)``.
+    """Criterion-optimal weights, certified: ``(weights, info, (x, P, gains))``.
 
-    N = 2 (``"diagonalise"``): the O(n)-per-iteration diagonalised Newton method, whose
-    result is certified by its gap; problems it leaves uncertified (ill-conditioned pairs)
-    are solved again by the Cholesky-based interval method. N > 2 (``"simplex"``): the
-    active-set Newton method on the simplex. ``fused`` is the weighted fusion at the
-    weights (see :func:`cifilter._information.weighted_fusion`); ``info`` has
-    ``iterations``, ``converged`` (certified gap at most ``GAP_TOL``), ``gap`` and
-    ``solver``.
+    N = 2 (``"diagonalise"``): the O(n)-per-iteration diagonalised Newton method; where
+    it is trusted its gap certifies it and the result is assembled from it; elsewhere
+    (ill-conditioned pairs) the proposal is certified from Cholesky factors and, if that
+    fails, solved again by the Cholesky-based interval method. N > 2 (``"simplex"``): the
+    active-set Newton method on the simplex. The fused estimate is the bound of the
+    returned gains in both cases (see ``_information``); ``info`` has ``iterations``,
+    ``converged`` (certified gap at most ``GAP_TOL``), ``gap`` and ``solver``.
     """
     if method not in ("auto", "diagonalise", "simplex"):
         raise ValueError(f"method must be 'auto', 'diagonalise' or 'simplex', got {method!r}")
@@ -336,41 +412,63 @@ def _optimal_weights(est, kind, W, method="auto", L_inv=None):
     shape, n = est.batch_shape, est.dim
     Wb = None if W is None else np.broadcast_to(W, shape + (n, n))
     two = est.count == 2 and method != "simplex"
-    if two:
-        omega, iterations = _diagonalised_weights(est, kind, W)
-        weights = np.stack([omega, 1.0 - omega], axis=-1)
-    else:
+    if not two:
         weights, iterations = _simplex_weights(L_inv, kind, Wb, est.count, shape)
-    fused, gap = _fuse_and_certify(est, L_inv, weights, kind, Wb,
-                                   failures="nan" if two else "raise")
-    if fused is None:
-        # The diagonalised eigenvalues were not accurate enough (ill-conditioned pair):
-        # solve those problems again from the Cholesky factors.
-        redo = np.flatnonzero(~(gap <= GAP_TOL).reshape(-1))
-        size = int(np.prod(shape, dtype=int))
-        flat_L_inv = L_inv.reshape((size,) + L_inv.shape[-3:])[redo]
-        flat_W = None if Wb is None else Wb.reshape(size, n, n)[redo]
-        P_flat = est.P.reshape((size,) + est.P.shape[-3:])[redo]
-        if kind == "det":
-            scale = np.full(redo.size, float(n))
-        else:
-            Wr = np.eye(n) if flat_W is None else flat_W
-            scale = np.einsum("...ij,...kji->...", Wr, P_flat)
-        omega_r, iterations_r = _interval_weights(flat_L_inv, kind, flat_W, scale)
-        weights = weights.reshape(size, 2).copy()
-        weights[redo] = np.stack([omega_r, 1.0 - omega_r], axis=-1)
-        weights = weights.reshape(shape + (2,))
-        iterations = iterations.reshape(-1).copy()
-        iterations[redo] += iterations_r
-        iterations = iterations.reshape(shape)
         fused, gap = _fuse_and_certify(est, L_inv, weights, kind, Wb)
+        result = (fused.x, fused.P, fused.gains)
+    else:
+        d = _diagonalised_weights(est, kind, W, L_inv)
+        weights = np.stack([d.omega, 1.0 - d.omega], axis=-1)
+        iterations, gap = d.iterations, d.gap
+        with np.errstate(all="ignore"):  # rows that are not trusted are replaced below
+            result = _fuse_diagonalised(est, L_inv, d, weights)
+        if not np.all(d.trusted):
+            weights, iterations, gap, result = _resolve_untrusted(
+                est, L_inv, kind, Wb, ~d.trusted, weights, iterations, gap, result)
     info = {
         "iterations": iterations,
         "converged": gap <= GAP_TOL,
         "gap": gap,
         "solver": "diagonalise" if two else "simplex",
     }
-    return weights, info, fused
+    return weights, info, result
+
+
+def _resolve_untrusted(est, L_inv, kind, W, untrusted, weights, iterations, gap, result):
+    """Certify (and where needed re-solve) the two-estimate problems ``untrusted`` from
+    Cholesky factors, and assemble them with the general weighted fusion."""
+    size = int(np.prod(est.batch_shape, dtype=int))
+    index = np.flatnonzero(untrusted.reshape(size))
+
+    def rows(array, tail):
+        return array.reshape((size,) + array.shape[array.ndim - tail:])[index]
+
+    sub = type(est)(rows(est.x, 2), rows(est.P, 3), rows(est.L, 3), est.column)
+    sub_L_inv, sub_W = rows(L_inv, 3), None if W is None else rows(W, 2)
+    sub_weights = rows(weights, 1)
+    fused, sub_gap = _fuse_and_certify(sub, sub_L_inv, sub_weights, kind, sub_W,
+                                       failures="nan")
+    sub_iterations = rows(iterations, 0)
+    if fused is None:
+        if kind == "det":
+            scale = np.full(index.size, float(est.dim))
+        else:
+            Wr = np.eye(est.dim) if sub_W is None else sub_W
+            scale = np.einsum("...ij,...kji->...", Wr, sub.P)
+        omega, more = _interval_weights(sub_L_inv, kind, sub_W, scale)
+        redo = ~(sub_gap <= GAP_TOL)
+        sub_weights = np.where(redo[:, None], np.stack([omega, 1.0 - omega], axis=-1),
+                               sub_weights)
+        sub_iterations = sub_iterations + np.where(redo, more, 0)
+        fused, sub_gap = _fuse_and_certify(sub, sub_L_inv, sub_weights, kind, sub_W)
+    out = []
+    for full, part in ((weights, sub_weights), (iterations, sub_iterations), (gap, sub_gap),
+                       *zip(result, (fused.x, fused.P, fused.gains))):
+        flat = np.array(full).reshape((size,) + np.shape(full)[len(est.batch_shape):])
+        flat[index] = part
+        out.append(flat.reshape(np.shape(full)))
+    weights, iterations, gap, x, P, gains = out
+    return weights, iterations, gap, (x, P, gains)
 
 
 def _fuse_and_certify(est, L_inv, weights, kind, W, failures="raise"):
@@ -511,10 +609,11 @@ def covariance_intersection(xs, Ps, criterion="trace", omega=None):
         weights = np.broadcast_to(weights, est.batch_shape + (est.count,)).copy()
         info["rule"] = "fixed"
     if fused is None:
-        fused = weighted_fusion(est.x, est.L, weights, L_inv)
-    info.update(_criterion_report(fused.P, kind, W))
-    return FusionResult(restore_style(fused.x, est.column), fused.P, "ci", weights,
-                        fused.gains, info)
+        assembled = weighted_fusion(est.x, est.L, weights, L_inv)
+        fused = (assembled.x, assembled.P, assembled.gains)
+    x, P, gains = fused
+    info.update(_criterion_report(P, kind, W))
+    return FusionResult(restore_style(x, est.column), P, "ci", weights, gains, info)
 
 
 def _criterion_report(P, kind, W):
