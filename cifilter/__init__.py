@@ -25,7 +25,7 @@ from . import pci as _pci  # noqa: F401  (registers "pci")
 from . import ei as _ei  # noqa: F401  (registers "ei")
 from . import pcei as _pcei  # noqa: F401  (registers "pcei")
 from . import bayes as _bayes  # noqa: F401  (registers "bayes")
-from ._linalg import mahalanobis_sq
+from ._linalg import IllConditionedError, mahalanobis_sq
 from .bayes import bayesian_fusion, sample_joint_covariances
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
 from .ei import ellipsoidal_intersection
@@ -45,6 +45,7 @@ __all__ = [
     "FusionMethod",
     "FusionMixin",
     "FusionResult",
+    "IllConditionedError",
     "KalmanFilter",
     "UnscentedKalmanFilter",
     "available_methods",

@@ -1,47 +1,242 @@
-"""Information-form fusion shared by CI and naive fusion.
+"""Information-form fusion with scalar weights, shared by CI, partial CI and naive fusion.
 
-``P^-1 = sum_i w_i P_i^-1``, ``x = P sum_i w_i P_i^-1 x_i`` and ``K_i = w_i P P_i^-1``.
+With weights ``w_i > 0`` (on the simplex for CI, eq. (24) of Wu, Cai & Fu for partial CI,
+all one for the naive fusion) the gains are ``K_i = w_i P P_i^-1`` with
+``P^-1 = sum_i w_i P_i^-1``, and the fused mean is ``x = sum_i K_i x_i``.
+
+The covariance returned is not ``(sum_i w_i P_i^-1)^-1`` evaluated as such but the bound
+*of the gains actually returned*,
+
+    P = sum_i K_i P_i K_i^T / w_i,
+
+which equals it in exact arithmetic. For any gains with ``sum_i K_i = I`` this ``P`` bounds
+the error covariance of ``sum_i K_i e_i`` for every joint covariance the rule admits
+(arbitrary correlation when ``w`` is on the simplex; Theorem 5 of Wu, Cai & Fu for the
+partial-correlation weights; it is the exact covariance for independent errors when all
+``w_i = 1``); see ``docs/methods/ci.rst``, "Numerical formulation". So rounding in the
+weights, the factorisations or the gains can make ``P`` larger than the optimum, never
+smaller than the error covariance of what is returned. It is formed as a sum of outer
+products ``w_i B_i B_i^T`` (``B_i = P L_i^-T``), so it is symmetric positive semidefinite
+by construction, and no step squares a condition number: the information matrices are
+built from the inverse Cholesky factors, and only triangular inverses are taken.
 """
+
+from typing import NamedTuple
 
 import numpy as np
 
-from ._linalg import cho_inverse, cholesky, symmetrize
+from ._linalg import condition_number, ill_conditioned, lower_inverse, symmetrize
 
-__all__ = ["information_matrices", "weighted_information_fusion"]
+__all__ = [
+    "InformationFactors",
+    "WeightedFusion",
+    "checked_cholesky",
+    "information_factors",
+    "information_matrices",
+    "lower_inverse_stack",
+    "weighted_fusion",
+    "weighted_information_fusion",
+]
+
+_EPS = np.finfo(float).eps
+
+
+def lower_inverse_stack(L):
+    """Inverse of lower triangular matrices by forward substitution, also for one matrix.
+
+    (``_linalg.lower_inverse`` hands a single matrix to LAPACK's LU solver, whose rounding
+    differs from the batched substitution: a batch would not equal its items bit for bit.)
+    """
+    return lower_inverse(L.reshape((-1,) + L.shape[-2:])).reshape(L.shape)
 
 
 def information_matrices(L):
-    """``P_i^-1`` for Cholesky factors ``L`` of shape (..., N, n, n)."""
-    return cho_inverse(L)
+    """``P_i^-1 = L_i^-T L_i^-1`` for Cholesky factors ``L`` of shape (..., N, n, n)."""
+    L_inv = lower_inverse_stack(L)
+    return np.swapaxes(L_inv, -1, -2) @ L_inv
 
 
-def weighted_information_fusion(x, L, weights, informations=None):
-    """Fuse estimates in information form with scalar weights.
+class WeightedFusion(NamedTuple):
+    """Everything the weighted information fusion computes (one batch of problems).
+
+    ``factors`` give the criteria and their gradients at the weights without further
+    solves (see :func:`information_factors`).
+    """
+
+    x: np.ndarray  # (..., n) fused mean
+    P: np.ndarray  # (..., n, n) bound of the gains, symmetric positive definite
+    gains: np.ndarray  # (..., N, n, n), summing to the identity
+    factors: "InformationFactors"  # of P^-1 = sum_i w_i P_i^-1 (gradients of the criteria)
+
+
+def _numerically_positive_definite(R, n):
+    """Factors whose diagonal spans at most ``1 / (n eps)`` in square, per problem.
+
+    ``(max / min diagonal of R)^2`` is a lower bound of the condition number; beyond
+    ``1 / (n eps)`` the factor is rounding noise, and so would be every result formed
+    from it.
+    """
+    diagonal = np.abs(np.diagonal(R, axis1=-2, axis2=-1))
+    finite = np.isfinite(R).all(axis=(-2, -1))
+    with np.errstate(invalid="ignore", over="ignore"):
+        spread = diagonal.min(axis=-1) ** 2 * (1.0 / (n * _EPS))
+        return finite & (spread > diagonal.max(axis=-1) ** 2)
+
+
+def checked_cholesky(A, name, *, failures="raise"):
+    """Lower Cholesky factors of a stack of SPD matrices, rejecting numerically singular ones.
+
+    Parameters
+    ----------
+    A : ndarray, shape (..., n, n)
+        Symmetric matrices.
+    name : str
+        Their name in the error message.
+    failures : {"raise", "nan"}
+        ``"raise"``: IllConditionedError (with the condition number) if any matrix is not
+        numerically positive definite. ``"nan"``: such matrices get a factor of NaN.
+
+    Returns
+    -------
+    ndarray, shape (..., n, n)
+    """
+    n = A.shape[-1]
+    try:
+        R = np.linalg.cholesky(A)
+        ok = _numerically_positive_definite(R, n)
+    except np.linalg.LinAlgError:
+        # Some matrix of the stack failed: find which (failure path only), factor the rest.
+        eigenvalues = np.linalg.eigvalsh(np.where(np.isfinite(A), A, 0.0))
+        ok = eigenvalues[..., 0] > n * _EPS * np.abs(eigenvalues[..., -1])
+        R = np.linalg.cholesky(np.where(ok[..., None, None], A, np.eye(n)))
+        ok = ok & _numerically_positive_definite(R, n)
+    if not np.all(ok):
+        if failures == "raise":
+            bad = np.where(ok[..., None, None], np.eye(n), A)
+            raise ill_conditioned(name, condition_number(bad).max())
+        R = np.where(ok[..., None, None], R, np.nan)
+    return R
+
+
+class InformationFactors(NamedTuple):
+    """Factors of ``P = (sum_i w_i P_i^-1)^-1`` from which the criteria and gains follow."""
+
+    R: np.ndarray  # (..., n, n), lower Cholesky factor of P^-1 = sum_i w_i P_i^-1
+    R_inv: np.ndarray  # (..., n, n), its inverse
+    B: np.ndarray  # (..., N, n, n), B_i = P L_i^-T = R^-T C_i
+    C: np.ndarray  # (..., N, n, n), C_i = R^-1 L_i^-T
+
+
+def information_factors(L_inv, weights, *, failures="raise"):
+    """The factors of the weighted information fusion (no gains, no fused mean).
+
+    Parameters
+    ----------
+    L_inv : ndarray, shape (..., N, n, n)
+        Inverses of the inputs' lower Cholesky factors.
+    weights : ndarray, shape (..., N)
+        Nonnegative weights, at least one positive per problem.
+    failures : {"raise", "nan"}
+        What a numerically singular fused information matrix gives: IllConditionedError, or
+        NaN factors for that problem (for solvers that step back from such weights).
+
+    Returns
+    -------
+    InformationFactors
+        With ``P = R_inv^T R_inv``: ``trace(W P) = trace(W R_inv^T R_inv)``,
+        ``-d trace(W P) / d w_i = trace(W B_i B_i^T)``, ``log det P = 2 log |det R_inv|``
+        and ``-d log det P / d w_i = ||C_i||_F^2``.
+
+    Raises
+    ------
+    IllConditionedError
+        The fused information matrix is numerically singular.
+    """
+    # Loops run over the N estimates, never over the batch: on stacks of small matrices a
+    # matmul per estimate is faster than einsum or a reduction over the estimate axis.
+    count = L_inv.shape[-3]
+    J = None
+    for k in range(count):
+        Lk = L_inv[..., k, :, :]
+        term = weights[..., k, None, None] * (np.swapaxes(Lk, -1, -2) @ Lk)
+        J = term if J is None else J + term
+    # (potrf reads one triangle only: J need not be symmetrised)
+    R = checked_cholesky(J, "the fused information matrix", failures=failures)
+    R_inv = lower_inverse_stack(R)
+    C = R_inv[..., None, :, :] @ np.swapaxes(L_inv, -1, -2)
+    B = np.swapaxes(R_inv, -1, -2)[..., None, :, :] @ C
+    return InformationFactors(R, R_inv, B, C)
+
+
+def weighted_fusion(x, L, weights, L_inv=None, factors=None):
+    """Fuse estimates in information form with scalar weights (see the module docstring).
 
     Parameters
     ----------
     x : ndarray, shape (..., N, n)
+        Means.
     L : ndarray, shape (..., N, n, n)
         Cholesky factors of the input covariances.
     weights : ndarray, shape (..., N)
-        Nonnegative weights (1 for naive fusion, on the simplex for CI).
-    informations : ndarray, shape (..., N, n, n), optional
-        ``P_i^-1`` if already computed.
+        Nonnegative weights, at least one positive per problem (on the simplex for CI,
+        eq. (24) of Wu, Cai & Fu for partial CI, ones for the naive fusion). A zero weight
+        gives a zero gain: the estimate is ignored.
+    L_inv : ndarray, shape (..., N, n, n), optional
+        ``L^-1`` if already computed.
+    factors : InformationFactors, optional
+        :func:`information_factors` at ``weights`` if already computed (finite).
 
     Returns
     -------
-    x_fused : ndarray, shape (..., n)
-    P_fused : ndarray, shape (..., n, n), symmetric
-    gains : ndarray, shape (..., N, n, n)
-    """
-    if informations is None:
-        informations = information_matrices(L)
-    weighted = weights[..., None, None] * informations
-    J = symmetrize(weighted.sum(axis=-3))
-    L_fused = cholesky(J, "fused information matrix")
-    P = cho_inverse(L_fused)
-    # K_i = w_i P P_i^-1, so x = sum_i K_i x_i; both come from the same gains.
-    gains = P[..., None, :, :] @ weighted
-    x_fused = np.einsum("...kij,...kj->...i", gains, x)
-    return x_fused, P, gains
+    WeightedFusion
+        ``x``, ``P`` (the bound of the returned gains), ``gains`` (exactly
+        ``I - sum`` of the others for the estimate of largest weight, so that they sum to
+        the identity to rounding), and the information ``factors`` at the weights.
 
+    Raises
+    ------
+    IllConditionedError
+        The fused information matrix is numerically singular.
+    """
+    if L_inv is None:
+        L_inv = lower_inverse_stack(L)
+    if factors is None:
+        factors = information_factors(L_inv, weights)
+    B = factors.B
+    n, count = x.shape[-1], x.shape[-2]
+    # K_i = w_i P P_i^-1 = w_i B_i L_i^-1. The gains sum to I in exact arithmetic; make it
+    # hold to rounding by giving the estimate of largest weight the remainder, so that the
+    # fused mean is unbiased and the error is exactly sum_i K_i e_i, the quantity the bound
+    # below is about.
+    reference = np.argmax(weights, axis=-1)
+    gains = np.empty(B.shape)
+    remainder = np.broadcast_to(np.eye(n), B.shape[:-3] + (n, n)).copy()
+    for k in range(count):
+        mine = (reference == k)[..., None, None]
+        K = B[..., k, :, :] @ L_inv[..., k, :, :]
+        K = np.where(mine, 0.0, weights[..., k, None, None] * K)
+        gains[..., k, :, :] = K
+        remainder -= K
+    x_ref = np.take_along_axis(x, reference[..., None, None], axis=-2)[..., 0, :]
+    x_fused = x_ref.copy()
+    for k in range(count):
+        mine = (reference == k)[..., None, None]
+        gains[..., k, :, :] = np.where(mine, remainder, gains[..., k, :, :])
+        x_fused += (gains[..., k, :, :] @ (x[..., k, :] - x_ref)[..., None])[..., 0] * (
+            reference != k)[..., None]
+    # The bound of these gains: sum_i K_i P_i K_i^T / w_i = sum_i (K_i L_i)(K_i L_i)^T / w_i,
+    # a sum of outer products (zero weight: zero gain, no term).
+    P = np.zeros(B.shape[:-3] + (n, n))
+    for k in range(count):
+        w = weights[..., k, None, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            M = np.where(w > 0.0, (gains[..., k, :, :] @ L[..., k, :, :]) / np.sqrt(w), 0.0)
+        P += M @ np.swapaxes(M, -1, -2)
+    P = symmetrize(P)
+    return WeightedFusion(x_fused, P, gains, factors)
+
+
+def weighted_information_fusion(x, L, weights, informations=None):
+    """``(x, P, gains)`` of :func:`weighted_fusion` (``informations`` is not needed)."""
+    fused = weighted_fusion(x, L, weights)
+    return fused.x, fused.P, fused.gains

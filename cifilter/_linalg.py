@@ -38,8 +38,21 @@ MAX_CONDITION = 1e12
 class IllConditionedError(ValueError):
     """A covariance (input or intermediate) too ill-conditioned to compute with reliably.
 
-    A subclass of :class:`ValueError`; the message names the matrix and its condition
-    number.
+    Raised under the conditioning contract (see the documentation's conventions): results
+    are guaranteed for input condition numbers up to ``1e12``; beyond that a rule either
+    still answers correctly or raises this error. A subclass of :class:`ValueError`; the
+    message names the matrix and gives its condition number.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter import IllConditionedError, covariance_intersection
+    >>> P = np.diag([1.0, 1e-30])  # numerically singular
+    >>> try:
+    ...     covariance_intersection([np.zeros(2)] * 2, [P, P], omega=0.5)
+    ... except IllConditionedError as error:
+    ...     print(str(error).split(":")[0])
+    the fused information matrix is too ill-conditioned to fuse reliably
     """
 
 

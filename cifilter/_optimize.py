@@ -10,6 +10,11 @@ import numpy as np
 
 __all__ = ["minimize_convex_interval", "minimize_convex_simplex"]
 
+# Relative cut-off of the pseudo-inverse of the normalised KKT system: directions whose
+# curvature is at the rounding level of the Hessian (exact ties) get no step, curvature
+# above it (nearly tied inputs, ill-conditioned ones) is resolved.
+_RCOND = 1e-13
+
 
 def minimize_convex_interval(derivatives, size, *, scale, xtol=1e-13, max_iter=100):
     """Minimise ``size`` convex functions of one variable on [0, 1].
@@ -74,7 +79,8 @@ def minimize_convex_interval(derivatives, size, *, scale, xtol=1e-13, max_iter=1
     return w, iterations, done
 
 
-def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, max_iter=200):
+def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, max_iter=200,
+                            gtol=0.0, absolute_gap=False):
     """Minimise smooth convex functions over the probability simplex, batched.
 
     Parameters
@@ -94,12 +100,23 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         fixed at zero should be released.
     max_iter : int
         Iteration limit.
+    gtol : float, optional
+        Also stop a problem as soon as its Frank-Wolfe gap ``sum_i w_i g_i - min_i g_i``,
+        a certified bound on ``f(w) - min f``, is at most ``gtol * |f|`` (or ``gtol`` with
+        ``absolute_gap``). This ends problems whose optimum is not unique (tied inputs:
+        the Hessian is singular along the ties and the steps need not shrink) as soon as
+        the objective is optimal. 0 (default) disables the test.
+    absolute_gap : bool, optional
+        Compare the gap with ``gtol`` itself rather than ``gtol * |f|`` (for objectives
+        such as a log-determinant whose value may be near zero).
 
     Returns
     -------
     w, iterations, converged : ndarray
         Minimisers (exact zeros where the optimum lies on a face), iterations used and
-        convergence flags.
+        convergence flags. A problem whose line search finds no decrease above the
+        rounding level of ``f`` stops there, unconverged unless a test above holds: the
+        caller should certify such a point (for instance by its gap).
 
     Notes
     -----
@@ -119,11 +136,15 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
     done = np.zeros(shape, dtype=bool)
     iterations = np.zeros(shape, dtype=int)
     eye = np.eye(count)
+    finished = np.zeros(shape, dtype=bool)  # stalled at the rounding level, unconverged
+    previous_d = np.zeros(shape + (count,))  # the last step's direction, length and slope
+    previous_t = np.zeros(shape)
+    previous_slope = np.zeros(shape)
     for _ in range(max_iter):
-        if done.all():
+        if (done | finished).all():
             break
         f, g, H = evaluate(w)
-        active = ~done
+        active = ~done & ~finished
         both_free = free[..., :, None] & free[..., None, :]
         # Normalise the curvature so that the constraint rows and the Hessian have the same
         # scale; the pseudo-inverse then drops flat directions (sum_i d_i I_i = 0, along
@@ -139,12 +160,31 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         rhs = np.concatenate(
             [np.where(free, -g, 0.0) / curvature[..., 0], np.zeros(shape + (1,))], axis=-1
         )
-        solution = (np.linalg.pinv(kkt, rcond=1e-10) @ rhs[..., None])[..., 0]
+        solution = (np.linalg.pinv(kkt, rcond=_RCOND) @ rhs[..., None])[..., 0]
         d = np.where(free, solution[..., :count], 0.0)
         mu = -solution[..., count] * curvature[..., 0, 0]
 
+        if gtol > 0.0:
+            gap = np.einsum("...i,...i->...", w, g) - g.min(axis=-1)
+            certified = active & (gap <= gtol * (1.0 if absolute_gap else np.abs(f)))
+            done |= certified
+            active = active & ~certified
+
         small_step = np.abs(d).max(axis=-1) < xtol
         slope = np.einsum("...i,...i->...", g, d)
+        extend = np.zeros(shape, dtype=bool)
+        if gtol > 0.0:
+            # A step after which the derivative along its direction kept more than half of
+            # its slope went nowhere near the minimum along that line: f is nearly linear
+            # there and the Hessian overstates its curvature (ill-conditioned, nearly tied
+            # inputs). Continue along the same line instead, by the secant of the
+            # derivative, up to the boundary; Newton resumes once the line is done.
+            now = np.einsum("...i,...i->...", g, previous_d)
+            extend = (active & (previous_t > 0.0) & (previous_slope < 0.0)
+                      & (now < 0.5 * previous_slope))
+            d = np.where(extend[..., None], previous_d, d)
+            slope = np.where(extend, now, slope)
+            small_step = small_step & ~extend
         # -g.d = d^T H d, the squared Newton decrement. Below the rounding level of f the face
         # is solved to working precision even if d exceeds xtol (flat, badly scaled problems):
         # the line search cannot tell a decrease from rounding noise there and would stall
@@ -154,7 +194,22 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         g_scale = np.abs(g).max(axis=-1) + np.finfo(float).tiny
         deficit = np.where(free, 0.0, g - mu[..., None])  # < 0: releasing helps
         release_any = (deficit < -1e-12 * g_scale[..., None]).any(axis=-1)
-        converged_now = active & small & ~release_any
+        if gtol > 0.0:
+            # Convergence is certified by the gap alone. A Newton step that vanishes
+            # without a certified gap means curvature the pseudo-inverse could not resolve
+            # (nearly tied inputs: f is almost linear along the ties): a Frank-Wolfe step
+            # towards the vertices of smallest gradient takes over there. A decrement
+            # below the rounding level of f is a step the line search cannot judge: it is
+            # taken as it is, and the gap at the next iterate decides.
+            # A Newton direction that is not a descent direction (curvature at the rounding
+            # level of the Hessian, of either sign) is replaced likewise.
+            converged_now = np.zeros(shape, dtype=bool)
+            stuck = active & (small_step | (slope >= 0.0)) & ~release_any
+            last = active & rounding & ~stuck & ~release_any
+        else:
+            converged_now = active & small & ~release_any
+            stuck = np.zeros(shape, dtype=bool)
+            last = converged_now & rounding & ~small_step
         done |= converged_now
         iterations += active & ~converged_now
 
@@ -163,23 +218,62 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         releasing = active & small & release_any
         free = free | (releasing[..., None] & (deficit < -1e-12 * g_scale[..., None]))
 
-        last = converged_now & rounding & ~small_step
-        stepping = (active & ~small) | last
+        if stuck.any():
+            # Every vertex within rounding of the smallest gradient gets the same share,
+            # so that equal inputs keep equal weights.
+            best = g <= g.min(axis=-1, keepdims=True) + 1e-12 * g_scale[..., None]
+            target = best / best.sum(axis=-1, keepdims=True)
+            d = np.where(stuck[..., None], target - w, d)
+            slope = np.where(stuck, np.einsum("...i,...i->...", g, d), slope)
+            free = free | (stuck[..., None] & best)
+
+        stepping = (active & ~small) | last | stuck
         if not stepping.any():
             continue
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(free & (d < 0), w / -d, np.inf)
         t_max = ratio.min(axis=-1)
         t = np.minimum(1.0, t_max)
+        if extend.any():
+            with np.errstate(divide="ignore", invalid="ignore"):
+                further = np.where(slope > previous_slope,
+                                   previous_t * slope / (previous_slope - slope), t_max)
+            t = np.where(extend, np.clip(np.nan_to_num(further, nan=0.0), 0.0, t_max), t)
+        by_slope = (last | stuck) & ~extend if gtol > 0.0 else np.zeros(shape, dtype=bool)
+        if by_slope.any():
+            # Where f is flat to its rounding level along d, its values cannot place the
+            # step but its directional derivative can (the gradient stays accurate): a
+            # secant step on phi'(t) = g(w + t d).d from phi'(0) and phi'(t_1),
+            # t_1 = min(1, t_max), extrapolated up to the boundary where phi' has not
+            # grown (f nearly linear along d).
+            t_1 = np.minimum(1.0, t_max)
+            trial = np.where(by_slope[..., None], np.clip(w + t_1[..., None] * d, 0.0, None), w)
+            _, g_1, _ = evaluate(trial)
+            s_1 = np.einsum("...i,...i->...", g_1, d)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                secant = np.where(s_1 > slope, t_1 * -slope / (s_1 - slope), t_max)
+            secant = np.clip(np.where(np.isnan(secant), 0.0, secant), 0.0, t_max)
+            t = np.where(by_slope, secant, t)
+        failed = np.zeros(shape, dtype=bool)
         for _ in range(60):  # Armijo backtracking, batched
             trial = np.where(stepping[..., None], w + t[..., None] * d, w)
             trial = np.clip(trial, 0.0, None)
             f_trial = objective(trial)
-            failed = stepping & ~last & ~(f_trial <= f + 1e-4 * t * slope + 1e-15 * np.abs(f))
+            failed = stepping & ~last & ~by_slope & ~(
+                f_trial <= f + 1e-4 * t * slope + 1e-15 * np.abs(f))
             if not failed.any():
                 break
             t = np.where(failed, 0.5 * t, t)
+        # No decrease at any step length: f is flat to its rounding level along d, so this
+        # problem is where floating point can take it. It stops (unconverged unless a
+        # test above said otherwise) instead of repeating the same failing search.
+        stalled = failed & (t * np.abs(d).max(axis=-1) < xtol)
+        stepping = stepping & ~stalled
+        finished |= stalled
         blocked = stepping & (t == t_max)
+        previous_d = d
+        previous_t = np.where(stepping & ~blocked, t, 0.0)
+        previous_slope = slope
         new_w = np.where(stepping[..., None], w + t[..., None] * d, w)
         hit = blocked[..., None] & (ratio == t_max[..., None])
         new_w = np.where(hit, 0.0, np.clip(new_w, 0.0, None))

@@ -7,15 +7,22 @@ and 5 is
     P^-1 = sum_i w_i P_i^-1,   K_i = w_i P P_i^-1,   w_i^-1 = rho_i / delta_i + 1 - rho_i,
 
 (eqs. (24), (33), (34); for two estimates eqs. (18)-(19) with ``delta_1 = 1 / (1 + gamma)``)
-with ``delta`` on the simplex chosen by the alternating projections of Algorithms 1 and 2
-(or, on request, by Newton's method on the same convex problem). ``rho = 1`` is standard
-CI (``w = delta``), ``rho = 0`` the naive fusion (``w_i = 1``).
+with ``delta`` on the simplex chosen by Newton's method on the convex problem (35) (or, on
+request, by the alternating projections of Algorithms 1 and 2). ``rho = 1`` is standard
+CI (``w = delta``), ``rho = 0`` the naive fusion (``w_i = 1``). The returned ``P`` is the
+Theorem 5 bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i`` (see
+``docs/methods/pci.rst``), so it is a bound whatever rounding went into the gains.
 """
 
 import numpy as np
 
-from ._information import weighted_information_fusion
-from ._linalg import cho_inverse, cholesky, symmetrize
+from ._information import (
+    checked_cholesky,
+    information_factors,
+    lower_inverse_stack,
+    weighted_fusion,
+)
+from ._linalg import symmetrize
 from ._optimize import minimize_convex_simplex
 from ._validation import (
     as_estimates,
@@ -32,7 +39,7 @@ from .result import FusionResult
 
 __all__ = ["partial_ci"]
 
-_SOLVERS = ("alternating", "newton")
+_SOLVERS = ("newton", "alternating")
 
 
 def _check_rho(rho, count, batch_shape):
@@ -100,16 +107,20 @@ def _weight_derivatives(delta, rho):
     return first, second
 
 
-def _bound_and_spread(delta, rho, informations):
-    """``w`` (24), ``P`` (33) and ``Tr(P P_i^-1 P)`` for every estimate."""
+def _bound_and_spread(delta, rho, L_inv):
+    """``w`` (24), the factors of ``P`` (33) and ``Tr(P P_i^-1 P)`` for every estimate.
+
+    ``Tr(P P_i^-1 P) = ||B_i||_F^2`` with ``B_i = P L_i^-T`` (see
+    :func:`cifilter._information.information_factors`): a sum of squares, accurate to
+    rounding whatever the conditioning.
+    """
     w = _partial_weights(delta, rho)
-    fused_information = symmetrize(np.einsum("...n,...nij->...ij", w, informations))
-    P = cho_inverse(cholesky(fused_information, "fused information matrix"))
-    spread = np.einsum("...ab,...nbc,...ca->...n", P, informations, P)
-    return w, P, spread
+    factors = information_factors(L_inv, w)
+    spread = np.square(factors.B).sum(axis=(-2, -1))
+    return w, factors, spread
 
 
-def _relative_gap(delta, rho, P, spread):
+def _relative_gap(delta, rho, trace, spread):
     """Certified bound on ``(Tr P(delta) - min Tr P) / Tr P`` (a Frank-Wolfe gap).
 
     ``Tr P(delta)`` is convex on the simplex (Lemma 8; also for rho_i in {0, 1}), so with
@@ -122,11 +133,10 @@ def _relative_gap(delta, rho, P, spread):
     positive = rho > 0.0
     base = np.where(positive, rho + (1.0 - rho) * delta, 1.0)
     along = -spread * _partial_weights(delta, rho) * np.where(positive, rho / base, 0.0)
-    trace = np.trace(P, axis1=-2, axis2=-1)
-    return (along.sum(axis=-1) - g.min(axis=-1)) / trace
+    return np.maximum(along.sum(axis=-1) - g.min(axis=-1), 0.0) / trace
 
 
-def _alternating_projection(informations, rho, tol, max_iter, start=None):
+def _alternating_projection(L_inv, rho, tol, max_iter, start=None):
     """Algorithm 2 (and Algorithm 1, its two-estimate case), batched.
 
     Starting from ``delta_i = 1/N`` (Step 1) it repeats, for all unfinished problems at
@@ -147,7 +157,7 @@ def _alternating_projection(informations, rho, tol, max_iter, start=None):
     """
     batch, count = rho.shape[:-1], rho.shape[-1]
     size = int(np.prod(batch, dtype=int))
-    informations = informations.reshape((size,) + informations.shape[-3:])
+    L_inv = L_inv.reshape((size,) + L_inv.shape[-3:])
     rho = rho.reshape(size, count)
     if start is None:
         delta = np.full((size, count), 1.0 / count)
@@ -160,8 +170,8 @@ def _alternating_projection(informations, rho, tol, max_iter, start=None):
         if active.size == 0:
             break
         d, r = delta[active], rho[active]
-        w, P, spread = _bound_and_spread(d, r, informations[active])  # Step 2
-        gap = _relative_gap(d, r, P, spread)
+        w, factors, spread = _bound_and_spread(d, r, L_inv[active])  # Step 2
+        gap = _relative_gap(d, r, np.square(factors.R_inv).sum(axis=(-2, -1)), spread)
         # sqrt(rho_i Tr(K_i P_i K_i^T)), factored so that a tiny rho_i does not underflow
         root = np.sqrt(r) * w * np.sqrt(spread)
         total = root.sum(axis=-1, keepdims=True)
@@ -177,51 +187,66 @@ def _alternating_projection(informations, rho, tol, max_iter, start=None):
 _NEWTON_RHO_FLOOR = 1e-8
 
 
-def _newton(informations, rho, tol, max_iter):
-    """Minimise ``Tr P(delta)`` (eq. (35)) by the foundation's active-set Newton method.
+def _newton(L_inv, rho, tol, max_iter):
+    """Minimise ``Tr P(delta)`` (eq. (35)) by the active-set Newton method on the simplex.
 
     Gradient ``g_i = -w_i' Tr(P I_i P)`` and Hessian
     ``H_ij = 2 w_i' w_j' Tr(P I_i P I_j P) - [i = j] w_i'' Tr(P I_i P)`` with
-    ``I_i = P_i^-1`` and the derivatives of eq. (24) (see :func:`_weight_derivatives`).
-    Optima on the boundary of the simplex (an ignored estimate) are exact. The Newton
-    solution then starts Algorithm 2, whose stopping test (``delta`` at rest and a certified
-    gap below ``tol``) decides convergence exactly as for the alternating solver; at an
-    optimum one sweep confirms it.
+    ``I_i = P_i^-1`` and the derivatives of eq. (24) (see :func:`_weight_derivatives`),
+    formed from the factors ``B_i = P L_i^-T`` and ``C_i = R^-1 L_i^-T``:
+    ``Tr(P I_i P) = ||B_i||^2`` and ``Tr(P I_i P I_j P) = Tr(B_i^T B_j C_j^T C_i)``. Optima on
+    the boundary of the simplex (an ignored estimate) are exact. Each problem stops when
+    its certified gap (:func:`_relative_gap`) is below ``tol / 4``.
 
     Positive bounds below ``_NEWTON_RHO_FLOOR`` are raised to it for the Newton phase
     only: near the optimum ``delta_i ~ sqrt(rho_i)`` the curvature grows like
-    ``rho_i^(-1/2)`` and would swamp the other directions (or overflow). The sweeps then
-    use the true bounds; the multiplicative step (25) moves such a ``delta_i`` to its
-    scale at once.
+    ``rho_i^(-1/2)`` and would swamp the other directions (or overflow). Problems whose
+    gap under the true bounds is then above ``tol`` continue with the sweeps of Algorithm 2
+    (:func:`_alternating_projection`), whose multiplicative step (25) moves such a
+    ``delta_i`` to its scale at once. Returns ``delta`` and the iterations (Newton steps
+    plus sweeps) per problem.
     """
-
     true_rho = rho
     rho = np.where(rho > 0.0, np.maximum(rho, _NEWTON_RHO_FLOOR), 0.0)
 
     def objective(delta):
-        _, P, _ = _bound_and_spread(delta, rho, informations)
-        return np.trace(P, axis1=-2, axis2=-1)
+        R_inv = information_factors(L_inv, _partial_weights(delta, rho)).R_inv
+        return np.square(R_inv).sum(axis=(-2, -1))
 
     def evaluate(delta):
-        _, P, spread = _bound_and_spread(delta, rho, informations)
+        _, factors, spread = _bound_and_spread(delta, rho, L_inv)
         first, second = _weight_derivatives(delta, rho)
-        C = P[..., None, :, :] @ informations  # C_i = P I_i
-        E = P[..., None, :, :] @ C  # E_i = P P I_i
-        curvature = np.einsum("...iab,...jba->...ij", E, C)  # Tr(P I_i P I_j P)
+        B, C = factors.B, factors.C
+        BtB = np.einsum("...iab,...jac->...ijbc", B, B)  # B_i^T B_j
+        CtC = np.einsum("...iab,...jac->...ijbc", C, C)  # C_i^T C_j
+        curvature = np.einsum("...ijbc,...jicb->...ij", BtB, CtC)  # Tr(P I_i P I_j P)
         H = 2.0 * first[..., :, None] * first[..., None, :] * curvature
-        H = H - np.einsum("...i,ij->...ij", second * spread, np.eye(delta.shape[-1]))
-        return np.trace(P, axis1=-2, axis2=-1), -first * spread, symmetrize(H)
+        H = H - (second * spread)[..., None] * np.eye(delta.shape[-1])
+        trace = np.square(factors.R_inv).sum(axis=(-2, -1))
+        return trace, -first * spread, symmetrize(H)
 
+    batch, count = rho.shape[:-1], rho.shape[-1]
     delta, steps, _ = minimize_convex_simplex(
-        evaluate, objective, rho.shape[-1], rho.shape[:-1], xtol=tol, max_iter=max_iter
+        evaluate, objective, count, batch, xtol=tol, max_iter=max_iter, gtol=0.25 * tol
     )
-    delta, sweeps, converged = _alternating_projection(
-        informations, true_rho, tol, max_iter, start=delta
-    )
-    return delta, np.asarray(steps + sweeps), converged
+    _, factors, spread = _bound_and_spread(delta, true_rho, L_inv)
+    trace = np.square(factors.R_inv).sum(axis=(-2, -1))
+    redo = (_relative_gap(delta, true_rho, trace, spread) > tol).reshape(-1)
+    steps = np.array(steps).reshape(-1)
+    if redo.any():
+        size = steps.size
+        flat = delta.reshape(size, count).copy()
+        more, sweeps, _ = _alternating_projection(
+            L_inv.reshape((size,) + L_inv.shape[-3:])[redo],
+            true_rho.reshape(size, count)[redo], tol, max_iter, start=flat[redo],
+        )
+        flat[redo] = more
+        steps[redo] += sweeps
+        delta = flat.reshape(delta.shape)
+    return delta, steps.reshape(batch)
 
 
-def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating", delta=None):
+def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=None):
     """Covariance Intersection for partially correlated estimates (Wu, Cai & Fu 2018).
 
     Fuses N estimates whose correlation coefficient bound is at most ``rho`` (eq. (8) for
@@ -230,7 +255,11 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating", de
         P^-1 = sum_i w_i P_i^-1,   K_i = w_i P P_i^-1,   w_i^-1 = rho_i / delta_i + 1 - rho_i
 
     (eqs. (24), (33), (34)), ``delta`` on the simplex minimising ``Tr(P)``. ``P`` bounds the
-    covariance of the fused error for every joint covariance within the bound.
+    covariance of the fused error for every joint covariance within the bound; it is
+    returned as the Theorem 5 bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i``,
+    which equals eq. (33) in exact arithmetic and stays a bound, up to rounding of the
+    products, for input condition numbers up to 1e12 (the conditioning contract; beyond it
+    the rule answers within the contract or raises IllConditionedError).
 
     * Two estimates: Theorem 3 and Algorithm 1, alternating eqs. (18)-(19),
       ``P = ((1 + gamma rho)^-1 P_1^-1 + (1 + rho / gamma)^-1 P_2^-1)^-1``, with eq. (14),
@@ -256,20 +285,21 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating", de
         per estimate (last axis N), or one per problem of a batch (last axis 1). Leading
         axes broadcast against the estimates' batch shape.
     tol : float, optional
-        Convergence tolerance (default 1e-10). The alternating projections stop when no
-        ``delta_i`` moved by more than ``tol`` in the last iteration and the certified
-        relative gap to the minimum trace (``info["gap"]``) is at most ``tol``; Newton's
-        method stops when its step is below ``tol``.
+        Convergence tolerance (default 1e-10): ``info["converged"]`` means that the
+        certified relative gap to the minimum trace (``info["gap"]``) is at most ``tol``
+        (the alternating projections also require that no ``delta_i`` moved by more than
+        ``tol`` in the last iteration).
     max_iter : int, optional
         Iteration limit (default 100). The bound is valid at every iterate; an unconverged
         problem (``info["converged"]`` False) only has a trace that may not be minimal,
         by at most ``info["gap"]`` relative.
-    solver : {"alternating", "newton"}, optional
-        ``"alternating"`` (default): the paper's alternating projections, Algorithm 1 for
-        two estimates and Algorithm 2 for more. ``"newton"``: minimise ``Tr(P)`` over
-        ``delta`` (problem (35)) by an active-set Newton method on the simplex; the same
-        optimum in a few iterations, also where the alternating projections converge
-        slowly (an optimum on the boundary of the simplex, where an estimate is ignored).
+    solver : {"newton", "alternating"}, optional
+        ``"newton"`` (default): minimise ``Tr(P)`` over ``delta`` (problem (35)) by an
+        active-set Newton method on the simplex, stopping each problem at a certified gap;
+        a few iterations whatever N and ``rho``, exact on the boundary of the simplex
+        (where an estimate is ignored). ``"alternating"``: the paper's alternating
+        projections, Algorithm 1 for two estimates and Algorithm 2 for more (linear
+        convergence: hundreds of iterations where an estimate is nearly ignored).
     delta : array_like, shape (..., N), or float, optional
         Fuse with these ``delta`` (on the simplex; a float ``d`` means ``(d, 1 - d)`` for
         two estimates) instead of the trace-optimal ones, as ``omega=`` does for
@@ -299,7 +329,9 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating", de
         Fewer than two estimates, mismatched shapes, non-finite values, covariances that
         are not symmetric positive definite, ``rho`` outside [0, 1] or of the wrong length,
         ``tol`` not positive, ``max_iter`` below 1, an unknown ``solver``, ``delta`` off
-        the simplex or of the wrong shape.
+        the simplex or of the wrong shape. :class:`~cifilter.IllConditionedError` (a
+        ValueError) where the fused information or covariance is numerically singular
+        (only beyond the conditioning contract, input condition numbers above 1e12).
     TypeError
         Non-numeric input, a non-integer ``max_iter``.
 
@@ -362,12 +394,15 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating", de
         raise ValueError(f"solver must be one of {', '.join(map(repr, _SOLVERS))}, got {solver!r}")
     two = est.count == 2
     used = _effective_rho(rho)
-    informations = cho_inverse(est.L)
+    L_inv = lower_inverse_stack(est.L)
+    converged = None
     if delta is None:
-        minimise = _alternating_projection if solver == "alternating" else _newton
-        delta, iterations, converged = minimise(informations, used, tol, max_iter)
-        info = {"rule": "optimal", "iterations": iterations, "converged": converged,
-                "solver": solver, "algorithm": 1 if two else 2}
+        if solver == "newton":
+            delta, iterations = _newton(L_inv, used, tol, max_iter)
+        else:
+            delta, iterations, converged = _alternating_projection(L_inv, used, tol, max_iter)
+        info = {"rule": "optimal", "iterations": iterations, "solver": solver,
+                "algorithm": 1 if two else 2}
     else:
         fixed = check_weights(delta, est.count, "delta")
         try:
@@ -377,10 +412,17 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating", de
                              f"batch shape {est.batch_shape} of the estimates") from None
         info = {"rule": "fixed"}
     weights = _partial_weights(delta, used)
-    x, P, gains = weighted_information_fusion(est.x, est.L, weights, informations)
-    spread = np.einsum("...ab,...nbc,...ca->...n", P, informations, P)
+    fused = weighted_fusion(est.x, est.L, weights, L_inv)
+    checked_cholesky(fused.P, "the fused covariance")
+    spread = np.square(fused.factors.B).sum(axis=(-2, -1))
+    trace = np.square(fused.factors.R_inv).sum(axis=(-2, -1))
     with np.errstate(over="ignore", invalid="ignore"):  # a fixed delta_i = 0, rho_i ~ 1e-300
-        gap = _relative_gap(delta, used, P, spread)
+        gap = _relative_gap(delta, used, trace, spread)
+    if info["rule"] == "optimal":
+        # Newton: the certified gap decides; the alternating projections also require
+        # delta at rest (the paper's test), which implies nothing beyond the gap.
+        info["converged"] = (gap <= tol) if converged is None else converged
+    x, P, gains = fused.x, fused.P, fused.gains
     info.update(delta=delta, rho=used, value=np.trace(P, axis1=-2, axis2=-1), gap=gap)
     if two:
         with np.errstate(divide="ignore"):
@@ -388,7 +430,7 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="alternating", de
     return FusionResult(restore_style(x, est.column), P, "pci", weights, gains, info)
 
 
-def _registered_pci(xs, Ps, rho=None, tol=1e-10, max_iter=100, solver="alternating",
+def _registered_pci(xs, Ps, rho=None, tol=1e-10, max_iter=100, solver="newton",
                     delta=None):
     if rho is None:
         raise ValueError(

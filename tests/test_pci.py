@@ -136,7 +136,7 @@ def test_example_3_gains_tend_to_selectors_as_q_grows():
 @pytest.mark.parametrize("seed", range(3))
 def test_rho_0_is_naive_fusion(count, seed):
     xs, Ps = random_problem(count, 3, seed)
-    r = partial_ci(xs, Ps, rho=0.0)
+    r = partial_ci(xs, Ps, rho=0.0, solver="alternating")
     naive = naive_fusion(xs, Ps)
     np.testing.assert_allclose(r.P, naive.P, rtol=1e-12)
     np.testing.assert_allclose(r.P, np.linalg.inv(sum(np.linalg.inv(P) for P in Ps)),
@@ -256,14 +256,14 @@ def test_algorithm_1_iterates_are_those_of_the_implementation(seed, rho):
     _, Ps = random_problem(2, 4, seed)
     gammas = algorithm_1(Ps[0], Ps[1], rho, 25)
     for k in (1, 2, 3, 5, 10, 25):
-        r = partial_ci(np.zeros((2, 4)), Ps, rho, tol=1e-300, max_iter=k)
+        r = partial_ci(np.zeros((2, 4)), Ps, rho, tol=1e-300, max_iter=k, solver="alternating")
         assert r.info["algorithm"] == 1
         assert r.info["gamma"] == pytest.approx(gammas[k - 1], rel=1e-10)
         assert r.info["iterations"] <= k
-    g = partial_ci(np.zeros((2, 4)), Ps, rho).info["gamma"]
+    g = partial_ci(np.zeros((2, 4)), Ps, rho, solver="alternating").info["gamma"]
     assert algorithm_1(Ps[0], Ps[1], rho, 200)[-1] == pytest.approx(g, rel=1e-6)
     # the alternative form of Theorem 3: w_1 = 1/(1 + gamma rho), w_2 = 1/(1 + rho/gamma)
-    r = partial_ci(np.zeros((2, 4)), Ps, rho)
+    r = partial_ci(np.zeros((2, 4)), Ps, rho, solver="alternating")
     np.testing.assert_allclose(r.omega, [1 / (1 + g * rho), 1 / (1 + rho / g)], rtol=1e-12)
     np.testing.assert_allclose(r.info["delta"], [1 / (1 + g), g / (1 + g)], rtol=1e-12)
 
@@ -321,7 +321,7 @@ def test_newton_finds_exact_boundary_optima_that_the_projections_approach():
     newton = partial_ci([np.zeros(2)] * 2, Ps, 1.0, solver="newton")
     assert newton.info["delta"][1] == 0.0 and newton.omega[1] == 0.0
     np.testing.assert_allclose(newton.P, Ps[0], rtol=1e-12)
-    slow = partial_ci([np.zeros(2)] * 2, Ps, 1.0, max_iter=1000)
+    slow = partial_ci([np.zeros(2)] * 2, Ps, 1.0, max_iter=1000, solver="alternating")
     assert 0 < slow.info["delta"][1] < 1e-6
     assert np.trace(slow.P) == pytest.approx(3.0, rel=1e-6)
 
@@ -335,17 +335,17 @@ def test_about_10_iterations_for_small_rho_and_many_more_near_rho_1():
     """
     Ps = random_spd(4, 0, (200, 2))
     xs = np.zeros((200, 2, 4))
-    small = partial_ci(xs, Ps, 0.1, tol=1e-6)
+    small = partial_ci(xs, Ps, 0.1, tol=1e-6, solver="alternating")
     assert small.info["converged"].all()
     assert np.median(small.info["iterations"]) <= 10
-    large = partial_ci(xs, Ps, 1.0, tol=1e-6, max_iter=5000)
+    large = partial_ci(xs, Ps, 1.0, tol=1e-6, max_iter=5000, solver="alternating")
     assert np.median(large.info["iterations"]) > 15
     assert large.info["iterations"].max() > 100
 
 
 def test_unconverged_problems_are_flagged_and_still_bounds():
     Ps = [np.diag([1.0, 2.0]), np.diag([3.0, 5.0])]  # boundary optimum: slow
-    r = partial_ci([np.zeros(2)] * 2, Ps, 1.0, max_iter=5)
+    r = partial_ci([np.zeros(2)] * 2, Ps, 1.0, max_iter=5, solver="alternating")
     assert not r.info["converged"] and r.info["iterations"] == 5
     assert r.info["gap"] > 1e-10
     # Lemma 7 holds for every delta: the fully correlated joint is still bounded

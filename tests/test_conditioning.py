@@ -1,0 +1,250 @@
+"""The conditioning contract of the conservative rules (CI and partial-correlation CI).
+
+For inputs whose condition numbers are at most 1e12, at any scale in 1e-12..1e12, the
+fused ``P`` is finite, exactly symmetric and positive definite, the gains sum to the
+identity, and ``P`` dominates the error covariance of the returned gains for every
+admissible joint covariance: checked in the exact worst direction (tests/worst_case.py),
+not only at random joints. Optimal weights are checked against a 50-digit reference.
+Each item of issue 9 that concerns these rules has a regression test here.
+"""
+
+import mpmath
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from strategies import ill_conditioned_sets
+from worst_case import assert_bound_holds, assert_unbiased
+
+from cifilter import ci_weights, covariance_intersection, fuse, partial_ci
+
+criteria = st.sampled_from(["trace", "det"])
+
+
+def assert_valid_covariance(P):
+    assert np.all(np.isfinite(P))
+    np.testing.assert_array_equal(P, np.swapaxes(P, -1, -2))
+    np.linalg.cholesky(P)  # raises if not positive definite
+
+
+def zeros_like_means(Ps):
+    return [np.zeros(P.shape[-1]) for P in Ps]
+
+
+# ----------------------------------------------------------------- conservativeness
+@settings(max_examples=60)
+@given(st.integers(2, 5).flatmap(lambda count: st.integers(1, 4).flatmap(
+    lambda n: st.tuples(ill_conditioned_sets(count, n), st.booleans()))), criteria)
+def test_ci_bound_holds_in_the_worst_direction(sets, criterion):
+    Ps, _ = sets
+    r = covariance_intersection(zeros_like_means(Ps), Ps, criterion=criterion)
+    assert_valid_covariance(r.P)
+    assert_unbiased(r.gains)
+    assert_bound_holds(r.P, r.gains, Ps)
+    assert r.info["converged"], r.info["gap"]
+
+
+@settings(max_examples=40)
+@given(st.integers(2, 5).flatmap(lambda count: st.tuples(
+    ill_conditioned_sets(count, 3, common_scale=False),
+    st.sampled_from(["fast", "improved-fast", "det-ratio", "fixed"]),
+    st.integers(0, 2**32 - 1))))
+def test_ci_bound_holds_for_fast_and_given_weights_at_any_scales(args):
+    Ps, rule, seed = args
+    omega = np.random.default_rng(seed).dirichlet(np.ones(len(Ps))) if rule == "fixed" else rule
+    r = covariance_intersection(zeros_like_means(Ps), Ps, omega=omega)
+    assert_valid_covariance(r.P)
+    assert_unbiased(r.gains)
+    assert_bound_holds(r.P, r.gains, Ps)
+
+
+@settings(max_examples=60)
+@given(st.integers(2, 5).flatmap(lambda count: st.tuples(
+    ill_conditioned_sets(count, 3), st.floats(0.0, 1.0))))
+def test_partial_ci_bound_holds_in_the_worst_direction(args):
+    Ps, rho = args
+    r = partial_ci(zeros_like_means(Ps), Ps, rho)
+    assert_valid_covariance(r.P)
+    assert_unbiased(r.gains)
+    # for two estimates the bound used is sqrt(rho_1 rho_2) = rho
+    assert_bound_holds(r.P, r.gains, Ps, rho=rho)
+    assert r.info["converged"], r.info["gap"]
+
+
+def test_worst_direction_check_detects_a_bound_that_is_too_small():
+    """The check can fail.
+
+    Example 2 of Wu, Cai & Fu: P = 1.6 I, K_1 = diag(0.8, 0.2), K_2 = diag(0.2, 0.8). Along
+    e_1 the worst error variance is (0.8 * 1 + 0.2 * 2)^2 = 1.44, so 0.88 P (1.408) is no
+    bound while 0.91 P (1.456) still is.
+    """
+    Ps = [np.diag([1.0, 4.0]), np.diag([4.0, 1.0])]
+    r = covariance_intersection(zeros_like_means(Ps), Ps)
+    with pytest.raises(AssertionError, match="not a bound"):
+        assert_bound_holds(0.88 * r.P, r.gains, Ps)
+    assert_bound_holds(0.91 * r.P, r.gains, Ps)
+    # and the naive fusion's covariance is not a bound under arbitrary correlation
+    naive = fuse([(np.zeros(2), P) for P in Ps], method="naive")
+    with pytest.raises(AssertionError, match="not a bound"):
+        assert_bound_holds(naive.P, naive.gains, Ps)
+    assert_bound_holds(naive.P, naive.gains, Ps, rho=0.0)
+
+
+# ----------------------------------------------------------------- optimality
+def _rounding_level(Ps):
+    """``kappa eps``: the contract's accuracy, kappa the largest input condition number."""
+    return max(np.linalg.cond(P) for P in Ps) * np.finfo(float).eps
+
+
+def _mp_gap(Ps, weights, criterion, rho=None):
+    """Relative (trace) or log-det (det) certified gap at ``weights``, in 50 digits.
+
+    For partial CI (``rho`` given) ``weights`` are ``delta`` and the trace criterion's
+    gradient goes through eq. (24).
+    """
+    with mpmath.workdps(50):
+        informations = [mpmath.matrix(P.tolist()) ** -1 for P in Ps]
+        if rho is None:
+            w = [mpmath.mpf(float(v)) for v in weights]
+            first = [mpmath.mpf(1)] * len(Ps)
+        else:
+            delta = [mpmath.mpf(float(v)) for v in weights]
+            rho_ = mpmath.mpf(float(rho))
+            w = [d / (rho_ + (1 - rho_) * d) if rho_ > 0 else mpmath.mpf(1) for d in delta]
+            first = [rho_ / (rho_ + (1 - rho_) * d) ** 2 if rho_ > 0 else mpmath.mpf(0)
+                     for d in delta]
+            weights = delta
+        J = sum((wi * I for wi, I in zip(w[1:], informations[1:])), w[0] * informations[0])
+        P = J ** -1
+        n = P.rows
+        trace = lambda M: sum(M[i, i] for i in range(n))  # noqa: E731
+        if criterion == "det":
+            g = [trace(P * I) for I in informations]
+            scale = 1
+        else:
+            g = [f * trace(P * I * P) for f, I in zip(first, informations)]
+            scale = trace(P)
+        along = sum(mpmath.mpf(float(v)) * gi for v, gi in zip(weights, g))
+        return float((max(g) - along) / scale)
+
+
+@settings(max_examples=25)
+@given(st.integers(2, 4).flatmap(lambda count: ill_conditioned_sets(count, 3, 1e10)), criteria)
+def test_ci_weights_are_optimal_against_a_50_digit_reference(Ps, criterion):
+    omega, info = ci_weights(Ps, criterion)
+    assert info["converged"]
+    # converged means a float64 gap of at most 1e-9, evaluated to rounding of order kappa eps
+    assert _mp_gap(Ps, omega, criterion) <= 1e-8 + _rounding_level(Ps)
+
+
+@settings(max_examples=20)
+@given(st.integers(2, 4).flatmap(lambda count: ill_conditioned_sets(count, 3, 1e10)),
+       st.floats(0.05, 1.0))
+def test_partial_ci_delta_is_optimal_against_a_50_digit_reference(Ps, rho):
+    r = partial_ci(zeros_like_means(Ps), Ps, rho)
+    assert r.info["converged"]
+    assert _mp_gap(Ps, r.info["delta"], "trace", rho) <= 1e-8 + _rounding_level(Ps)
+
+
+# ----------------------------------------------------------------- permutation
+@settings(max_examples=40)
+@given(st.integers(2, 4).flatmap(lambda count: st.tuples(
+    ill_conditioned_sets(count, 3), st.permutations(range(count)))), criteria)
+def test_ci_is_permutation_invariant_for_ill_conditioned_inputs(args, criterion):
+    Ps, order = args
+    r = covariance_intersection(zeros_like_means(Ps), Ps, criterion=criterion)
+    q = covariance_intersection(zeros_like_means(Ps), [Ps[i] for i in order],
+                                criterion=criterion)
+    # the criterion is the same (the optimum is unique in value, not always in weights)
+    value = "log_value" if criterion == "det" else "value"
+    assert q.info[value] == pytest.approx(r.info[value], rel=1e-8, abs=1e-8)
+
+
+# ----------------------------------------------------------------- issue 9 regressions
+def _spd(rng, n, cond):
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    P = (Q * np.logspace(0, np.log10(cond), n)) @ Q.T
+    return (P + P.T) / 2
+
+
+def test_item_1_two_estimate_ci_is_conservative_at_condition_1e8():
+    rng = np.random.default_rng(29)
+    P1, P2 = _spd(rng, 3, 1e8), _spd(rng, 3, 1e8)
+    r = covariance_intersection([np.zeros(3)] * 2, [P1, P2])
+    v = np.array([0.33579355619, 0.84489766623, 0.41640199473])  # the reported direction
+    s = [np.linalg.norm(np.linalg.cholesky(P).T @ K.T @ v) for K, P in zip(r.gains, [P1, P2])]
+    assert v @ r.P @ v >= sum(s) ** 2 * (1 - 1e-9)  # was 0.337 against 1.008
+    assert_bound_holds(r.P, r.gains, [P1, P2])
+
+
+@pytest.mark.parametrize("cond", [1e7, 1e8, 1e9, 1e10, 1e11, 1e12])
+def test_item_1_conservative_and_positive_definite_over_the_condition_range(cond):
+    rng = np.random.default_rng(int(np.log10(cond)))
+    for _ in range(20):
+        Ps = [_spd(rng, 4, cond), _spd(rng, 4, cond)]
+        r = covariance_intersection([np.zeros(4)] * 2, Ps)
+        assert_valid_covariance(r.P)
+        assert_bound_holds(r.P, r.gains, Ps)
+
+
+def test_item_2_det_optimum_at_condition_1e10_is_not_a_wrong_vertex():
+    rng = np.random.default_rng(0)
+    Ps = [_spd(rng, 4, 1e10), _spd(rng, 4, 1e10)]
+    r = covariance_intersection([np.zeros(4)] * 2, Ps, criterion="det")
+    half = covariance_intersection([np.zeros(4)] * 2, Ps, criterion="det", omega=0.5)
+    assert r.info["converged"]
+    assert r.info["log_value"] <= half.info["log_value"] + 1e-12  # was 2.6e11 times larger
+    assert _mp_gap(Ps, r.omega, "det") <= 1e-8 + _rounding_level(Ps)
+
+
+def test_item_2_graded_case_finds_the_vertex():
+    P1 = np.array([[1e18, 1e8], [1e8, 1.0]])
+    r = covariance_intersection([[1.0, 0.0], [0.0, 1.0]], [P1, np.diag([4.0, 1.0])])
+    np.testing.assert_array_equal(r.omega, [0.0, 1.0])  # was trace 1.4e14
+    assert np.trace(r.P) == pytest.approx(5.0, rel=1e-12) and r.info["converged"]
+
+
+def test_item_6_nearly_tied_inputs_converge_at_once():
+    Ps = [np.eye(2), np.eye(2), (1 + 1e-5) * np.eye(2)]
+    for criterion in ("trace", "det"):
+        r = covariance_intersection([np.zeros(2)] * 3, Ps, criterion=criterion)
+        assert r.info["converged"] and r.info["iterations"] <= 5  # was 200, unconverged
+        assert r.omega[2] == 0.0 and r.omega[0] == pytest.approx(r.omega[1], abs=1e-6)
+    # one such problem in a batch does not hold the others back
+    rng = np.random.default_rng(1)
+    batch = np.array([[_spd(rng, 2, 10.0) for _ in range(3)] for _ in range(50)] + [Ps])
+    r = covariance_intersection(np.zeros(batch.shape[:-1]), batch)
+    assert r.info["converged"].all() and r.info["iterations"].max() <= 10
+
+
+@pytest.mark.parametrize("count", [2, 3, 4])
+def test_item_7_partial_ci_default_converges_and_ignores_the_batch(count):
+    rng = np.random.default_rng(count)
+    Ps = np.array([[_spd(rng, 3, 10 ** rng.uniform(0, 3)) for _ in range(count)]
+                   for _ in range(60)])
+    rho = rng.uniform(0.0, 1.0, size=(60, 1))
+    xs = np.zeros(Ps.shape[:-1])
+    r = partial_ci(xs, Ps, rho)
+    assert r.info["solver"] == "newton"
+    assert r.info["converged"].all() and (r.info["gap"] <= 1e-10).all()
+    alone = [int(partial_ci(xs[k], Ps[k], rho[k]).info["iterations"]) for k in range(60)]
+    np.testing.assert_array_equal(r.info["iterations"], alone)  # no batch composition effect
+
+
+def test_item_7_the_paper_algorithm_stays_available():
+    Ps = [np.diag([1.0, 4.0]), np.diag([4.0, 1.0])]
+    r = partial_ci([np.zeros(2)] * 2, Ps, 0.5, solver="alternating")
+    assert r.info["solver"] == "alternating" and np.trace(r.P) == pytest.approx(2.4)
+
+
+def test_item_11_det_value_reports_its_logarithm_at_huge_scales():
+    # omega = 1/2: P = 1.6 c I and det P = 2.56 c^2, log det P = log 2.56 + 2 log c
+    for c in (1e150, 1e200):
+        Ps = [c * np.diag([1.0, 4.0]), c * np.diag([4.0, 1.0])]
+        r = covariance_intersection([np.zeros(2)] * 2, Ps, criterion="det")
+        expected = np.log(2.56) + 2 * np.log(c)
+        assert r.info["log_value"] == pytest.approx(expected, rel=1e-14)
+        if c < 1e154:
+            assert r.info["value"] == pytest.approx(2.56 * c * c, rel=1e-13)
+        else:
+            assert r.info["value"] == np.inf
