@@ -463,6 +463,21 @@ def test_issue_9_near_singular_second_estimate(tiny):
     assert r.P[1, 1] == pytest.approx(tiny, rel=1e-2)  # the error of x[1] is estimate 2's
 
 
+@pytest.mark.parametrize("d", [[1e3, 1e-3], [1e-6, 1e6], [2.0, 1e10]])
+def test_issue_9_reproducer_is_invariant_under_a_change_of_units(d):
+    """The reproducer in other units (x -> D x, P -> D P D): the same fused result, to
+    rounding (the draws are the same whitened samples)."""
+    d = np.array(d)
+    xs = [np.array([1.0, 0.0]), np.array([0.0, 1.0])]
+    Ps = [np.diag([1.0, 4.0]), np.diag([1.0, 1e-40])]
+    r = bayesian_fusion(xs, Ps, samples=200, rng=0)
+    s = bayesian_fusion([d * x for x in xs], [d[:, None] * P * d for P in Ps], samples=200,
+                        rng=0)
+    np.testing.assert_allclose(s.x / d, r.x, rtol=1e-12)
+    np.testing.assert_allclose(s.P / np.outer(d, d), r.P, rtol=1e-12)
+    np.testing.assert_allclose(s.gains * d / d[:, None], r.gains, rtol=1e-12, atol=1e-14)
+
+
 @given(st.integers(2, 4).flatmap(lambda count: st.integers(1, 5).flatmap(
     lambda n: st.tuples(st.booleans().flatmap(lambda common: ill_conditioned_sets(
         count, n, common_scale=common)), st.floats(0.0, 10.0), st.integers(0, 2**32 - 1)))))
