@@ -280,7 +280,7 @@ def sample_joint_covariances(Ps, dof, size, rng=None):
     ----------
     Ps : sequence of array_like or array_like, shape (..., N, n, n)
         The N >= 2 diagonal blocks, symmetric positive definite; leading batch axes draw
-        for many problems at once.
+        for many problems at once (problem after problem from the same streams).
     dof : float
         Degrees of freedom of the Wishart prior on the whole joint covariance, at least
         ``N*n``. ``N*n + 1`` makes the conditional uniform over all admissible
@@ -288,20 +288,23 @@ def sample_joint_covariances(Ps, dof, size, rng=None):
     size : int
         Number of samples per problem, >= 1.
     rng : numpy.random.Generator, int or None, optional
-        Randomness source; the same seed gives the same samples.
+        Randomness source; the same seed gives the same samples (see Notes); a Generator
+        passed to successive calls gives fresh samples.
 
     Returns
     -------
     ndarray, shape (..., size, N*n, N*n)
-        Symmetric positive definite joint covariances whose diagonal blocks are exactly
-        the given ``Ps``.
+        Exactly symmetric joint covariances whose diagonal blocks are exactly the given
+        ``Ps`` and which all pass a Cholesky factorisation.
 
     Raises
     ------
     ValueError
         Fewer than two blocks, blocks that are not symmetric positive definite,
-        ``dof < N*n`` (the message states the requirement), ``size < 1``, or blocks
-        so badly conditioned that no positive definite sample is found in floating point.
+        ``dof < N*n`` (the message states the requirement) or ``size < 1``.
+    IllConditionedError
+        (a ValueError) Blocks so badly conditioned that no sample positive definite in
+        floating point is found after 50 redraws.
     TypeError
         Non-numeric ``Ps``, ``dof`` or ``size``, or a bad ``rng``.
 
@@ -311,16 +314,35 @@ def sample_joint_covariances(Ps, dof, size, rng=None):
 
     Notes
     -----
-    Every sample is built from its Cholesky factor, lower triangular with a positive
-    diagonal, so it is positive definite by construction. The rare samples that are
-    singular in floating point (nearly full correlation with badly conditioned blocks) are
-    drawn again, so that every returned sample passes a Cholesky factorisation. The
-    density exists for ``dof > N*n - 1``, but the papers define the Wishart distribution
-    for ``dof >= N*n``; below that the last stage's chi-square draws have fewer than one
-    degree of freedom and the prior piles onto full correlation. The conference version states
-    Theorem 1 with ``S ~ W(n, I)``; Lemma 3 applied to eq. (10) gives ``W(n - k/2, I)``,
-    which is the journal's ``W(n - l_1, I)`` used here (see the method's page).
-    Vectorised over samples and batch; the Python loop runs over the N - 1 stages.
+    Each sample is drawn in whitened form, ``R = D^-1 A D^-T`` with ``D`` the block
+    diagonal of the blocks' Cholesky factors: ``R`` has identity diagonal blocks, its law
+    does not depend on the blocks, and the sampler builds its Cholesky factor ``H``
+    (lower triangular, positive diagonal) directly, so that ``A = D R D^T`` is positive
+    definite by construction with Cholesky factor ``D H``. The rare samples that are
+    singular once rounded (nearly full correlation with badly conditioned blocks; the
+    pivots of ``D H`` flag them for free) are drawn again, so that every returned sample
+    passes a Cholesky factorisation; the law is conditioned on an event of small
+    probability (at ``dof = N*n``, two blocks: 2e-5 of the draws for condition numbers 1e6
+    and 1e9, 1e-3 for 1e12, none in 4e5 draws for well-conditioned blocks). The density exists for
+    ``dof > N*n - 1``, but the papers define the Wishart distribution for ``dof >= N*n``;
+    below that the last stage's chi-square draws have fewer than one degree of freedom and
+    the prior piles onto full correlation. The conference version states Theorem 1 with
+    ``S ~ W(n, I)``; Lemma 3 applied to eq. (10) gives ``W(n - k/2, I)``, which is the
+    journal's ``W(n - l_1, I)`` used here (see the method's page).
+
+    Randomness: normal deviates, chi-square deviates and redraws come from three
+    generators derived from ``rng`` (a SeedSequence seeded by four draws of ``rng``), each
+    consumed sample after sample; the samples are built in chunks of bounded size, and the
+    same seed gives the same samples whatever the chunk size. :func:`bayesian_fusion` with
+    the same seed fuses the same whitened samples (but does not redraw: it never forms
+    ``A``).
+
+    Memory: the output holds ``size * (N n)^2`` floats per problem (128 MB per million
+    samples of a 4x4 joint covariance), which is inherent to
+    returning them; beyond it the sampler uses a few arrays of one chunk (about 4 MB each).
+    To average a function of many samples, use :func:`bayesian_fusion` or call this in
+    pieces with a Generator. Vectorised over samples and batch; the Python loops run over
+    the chunks and the N - 1 stages.
 
     References
     ----------
@@ -490,7 +512,8 @@ def bayesian_fusion(xs, Ps, dof=None, samples=100, rng=None):
     Draws ``samples`` joint covariances with the known diagonal blocks from their
     conditional distribution under the prior ``W(dof, Sigma)``, block-diagonal ``Sigma``
     (:func:`sample_joint_covariances`), fuses the estimates with the best linear unbiased
-    estimator of each sample (eqs. (18)-(20), :func:`optimal_fusion`) and averages:
+    estimator of each sample (eqs. (18)-(20), what :func:`optimal_fusion` computes for a
+    known joint covariance) and averages:
 
         x_hat = (1/M) sum_m W^(m)T x = sum_i K_i x_i,    K_i = (1/M) sum_m K_i^(m).
 
@@ -510,7 +533,8 @@ def bayesian_fusion(xs, Ps, dof=None, samples=100, rng=None):
     samples : int, optional
         Monte Carlo samples M per fusion (default 100, as in the journal).
     rng : numpy.random.Generator, int or None, optional
-        Randomness source; the same seed gives the same result.
+        Randomness source; the same seed gives the same result, whatever the internal chunk
+        size; a Generator passed to successive calls gives fresh draws.
 
     Returns
     -------
@@ -527,6 +551,10 @@ def bayesian_fusion(xs, Ps, dof=None, samples=100, rng=None):
         Fewer than two estimates, bad shapes, non-finite values, covariances that are not
         symmetric positive definite, ``dof < N*n`` (the message states the requirement),
         ``samples < 1``.
+    IllConditionedError
+        (a ValueError) The result would not be finite and positive definite: covariances
+        far beyond the conditioning contract (condition numbers above 1e12). Within it the
+        result is always finite, symmetric and positive definite.
     TypeError
         Non-numeric input or a bad ``rng``.
 
@@ -555,8 +583,33 @@ def bayesian_fusion(xs, Ps, dof=None, samples=100, rng=None):
     repeated fusion of the same information makes it overconfident (see the method's
     page). For the same reason the average of BLUEs is not the linear rule of least
     expected error under its own prior (that is naive fusion); in the papers' experiments
-    the two differ by a few percent. The cost is M joint samples and M Cholesky
-    factorisations of size N n per fusion.
+    the two differ by a few percent.
+
+    Numerical formulation (derived on the method's page). The samples are drawn in
+    whitened form, ``P_x = D R D^T`` with ``D = blkdiag(L_i)`` the inputs' Cholesky
+    factors: ``R`` has identity diagonal blocks and a law free of the ``P_i``, and the
+    sampler builds its Cholesky factor ``H``. The BLUE of a sample is the least-squares
+    problem ``min_x ||H^-1 D^-1 (y - I_(N) x)||``; with ``H^-1 E = Q R_0`` (QR,
+    ``E = D^-1 I_(N)`` with its columns scaled by powers of two) the whitened gains are
+    ``R_0^-1 Q^T H^-1``, so no joint covariance is formed or inverted and no condition number
+    is squared. The gains ``K_i`` follow from the averaged whitened gains by triangular
+    solves; column c of the gain of the estimate with the largest column c of ``L_i^-1``
+    (the most precise one in that direction) is taken as ``e_c`` minus the others', so the
+    gains sum to the identity to rounding, and ``x = x_ref + sum_i K_i (x_i - x_ref)`` with
+    ``x_ref`` made of those estimates' components. The result transforms exactly under a
+    change of units ``x -> T x``, ``P -> T P T`` for a diagonal ``T`` (the whitened draws do not
+    depend on the ``P_i``), to rounding. A result that is not finite and positive definite
+    raises :class:`IllConditionedError`.
+
+    Cost and memory: M whitened samples and M QR factorisations of (N n) x n matrices per
+    fusion, processed in chunks of about 2^19 / (N n)^2 samples, problem after problem; the
+    memory is that of one chunk (a few dozen MB) plus O((N n)^2) per problem, whatever M
+    (28 MB traced for M = 1e6 and two 4-D estimates). Randomness: normal and chi-square
+    deviates come from two generators derived from ``rng`` (a SeedSequence seeded by four
+    draws of ``rng``), each consumed sample after sample, so the chunking does not change
+    the draws; :func:`sample_joint_covariances` with the same seed draws the same whitened
+    samples. Vectorised over samples and batch; Python loops run over chunks, stages and
+    matrix rows.
 
     References
     ----------
