@@ -123,6 +123,29 @@ def _stage_layout(count, n, dof):
     return offsets, total, df
 
 
+def _draws(rows, count, n, dof, normal_rng, chi_rng):
+    """The random numbers of ``rows`` samples: per stage j = 1..N-1, ``[X, L_S]`` (rows, n, p + n).
+
+    ``X`` (n x p, ``p = j n``) is standard normal and ``L_S`` (n x n) the Bartlett factor of
+    ``S ~ W_n(dof - p, I)``: lower triangular, ``L_S,ii^2 ~ chi^2(dof - p - i)``, standard
+    normal below the diagonal; real ``dof`` allowed. Every sample consumes
+    ``sum_j n (p + n)`` normals and ``(N - 1) n`` chi-squares, in that order within each
+    stream, so the draws of a sample do not depend on how the rows are chunked.
+    """
+    offsets, total, df = _stage_layout(count, n, dof)
+    normals = normal_rng.standard_normal((rows, total))
+    chi = np.sqrt(chi_rng.chisquare(df, size=(rows, df.size)))
+    stages = []
+    for j in range(1, count):
+        p = j * n
+        Y = normals[:, offsets[j - 1]:offsets[j - 1] + n * (p + n)].reshape(rows, n, p + n)
+        for i in range(n):
+            Y[:, i, p + i] = chi[:, (j - 1) * n + i]
+            Y[:, i, p + i + 1:] = 0.0
+        stages.append(Y)
+    return stages
+
+
 def _sample_whitened(rows, count, n, dof, normal_rng, chi_rng):
     """Whitened joint covariance samples: ``H`` and ``R = H H^T`` (rows, N n, N n).
 
@@ -130,36 +153,24 @@ def _sample_whitened(rows, count, n, dof, normal_rng, chi_rng):
     diagonal of the inputs' Cholesky factors); ``H`` is its lower Cholesky factor, built
     directly. Stage j (j = 1, ..., N-1, ``p = j n``) draws the block row of estimate j given
     the leading block by Theorem 1 of the journal with ``A_11 = R_<j`` (size l_1 = p, factor
-    ``H_<j``) and ``A_22 = I_n``:
+    ``H_<j``) and ``A_22 = I_n``, from ``[X, L_S]`` of :func:`_draws`:
 
-        S = L_S L_S^T ~ W_n(dof - p, I),  X ~ N(0, I_n (x) I_p),  C C^T = S + X X^T,
-        T = C^-1 X  ~  IT_{n, p}(dof - p - n + 1, 0, I, I),
+        C C^T = S + X X^T,   T = C^-1 X  ~  IT_{n, p}(dof - p - n + 1, 0, I, I),
         block row j of R, columns < p  =  T H_<j^T,
         block row j of H  =  [T, C^-1 L_S],
 
     eqs. (50)-(53) in whitened coordinates (``L_j^-1`` times the journal's block row times
     ``D_<j^-T``), with Cholesky factors in place of the symmetric square roots (the law of T is
-    invariant under T -> U T V for orthogonal U, V). ``L_S`` is the Bartlett factor (lower
-    triangular, ``L_S,ii^2 ~ chi^2(dof - p - i)``, standard normal below the diagonal; real
-    ``dof`` allowed). ``T T^T + C^-1 S C^-T = I`` makes the new diagonal block of R the
-    identity. Every sample consumes ``sum_j n (p + n)`` normals and ``(N - 1) n`` chi-squares,
-    in that order within each stream.
+    invariant under T -> U T V for orthogonal U, V). ``T T^T + C^-1 S C^-T = I`` makes the
+    new diagonal block of R the identity.
     """
     dim = count * n
-    offsets, total, df = _stage_layout(count, n, dof)
-    normals = normal_rng.standard_normal((rows, total))
-    chi = np.sqrt(chi_rng.chisquare(df, size=(rows, df.size)))
     H = np.zeros((rows, dim, dim))
     R = np.zeros((rows, dim, dim))
-    eye = np.arange(dim)
     H[:, :n, :n] = np.eye(n)
-    R[:, eye, eye] = 1.0
-    for j in range(1, count):
+    R.reshape(rows, dim * dim)[:, ::dim + 1] = 1.0  # the identity diagonal blocks
+    for j, Y in enumerate(_draws(rows, count, n, dof, normal_rng, chi_rng), start=1):
         p = j * n
-        Y = normals[:, offsets[j - 1]:offsets[j - 1] + n * (p + n)].reshape(rows, n, p + n)
-        for i in range(n):
-            Y[:, i, p + i] = chi[:, (j - 1) * n + i]
-            Y[:, i, p + i + 1:] = 0.0
         # Contiguous transposes: numpy's stacked matmul is about twice as fast on them.
         C = cholesky(Y @ _transpose(Y), "X X^T + S")
         TD = solve_lower(C, Y)  # [T, C^-1 L_S]
@@ -168,6 +179,45 @@ def _sample_whitened(rows, count, n, dof, normal_rng, chi_rng):
         R[:, p:p + n, :p] = cross
         R[:, :p, p:p + n] = np.swapaxes(cross, -1, -2)
     return H, R
+
+
+def _sample_coloured(L, P, dof, normal_rng, chi_rng, out):
+    """Write joint covariance samples ``A = D R D^T`` into ``out`` (rows, Nn, Nn).
+
+    The same draws and the same construction as :func:`_sample_whitened`, multiplied out
+    with the inputs' factors ``L`` (rows or 1, N, n, n) as it goes: the Cholesky factor of
+    ``A`` is ``G = D H``, block row j of ``G`` is ``L_j [T, C^-1 L_S]``, and block row j of
+    ``A`` is ``L_j T G_<j^T`` (the journal's eqs. (50)-(53) with Cholesky factors). The
+    diagonal blocks are written exactly as ``P``, the cross blocks with their exact
+    transposes. ``G`` is only built where a later stage needs it. Returns, per sample, the
+    smallest ratio ``G_ii^2 / A_ii`` of a squared Cholesky pivot of ``A`` to its diagonal
+    entry (1 is independent, 0 singular).
+    """
+    rows, count, n = out.shape[0], L.shape[1], L.shape[-1]
+    for j in range(count):
+        out[:, j * n:(j + 1) * n, j * n:(j + 1) * n] = P[:, j]
+    G = L[:, 0]  # Cholesky factor of the first block
+    worst_pivot_ratio = np.ones(rows)
+    for j, Y in enumerate(_draws(rows, count, n, dof, normal_rng, chi_rng), start=1):
+        p = j * n
+        C = cholesky(Y @ _transpose(Y), "X X^T + S")
+        last = j == count - 1
+        TD = solve_lower(C, Y[..., :p] if last else Y)  # [T, C^-1 L_S]
+        new_rows = L[:, j] @ TD  # [L_j T, L_j C^-1 L_S]
+        cross = new_rows[..., :p] @ _transpose(G)
+        out[:, p:p + n, :p] = cross
+        out[:, :p, p:p + n] = np.swapaxes(cross, -1, -2)
+        # The diagonal of the new factor block L_j C^-1 L_S is a product of diagonals.
+        pivots = _diagonal(L[:, j]) * _diagonal(Y[..., p:]) / _diagonal(C)
+        ratio = (pivots**2 / _diagonal(P[:, j])).min(axis=-1)
+        worst_pivot_ratio = np.minimum(worst_pivot_ratio, ratio)
+        if not last:
+            G_next = np.zeros((rows, p + n, p + n))
+            G_next[:, :p, :p] = G
+            G_next[:, p:, :] = new_rows
+            G = G_next
+    first = (_diagonal(L[:, 0]) ** 2 / _diagonal(P[:, 0])).min(axis=-1)
+    return np.minimum(worst_pivot_ratio, first)
 
 
 def _chunk_rows(dim):
@@ -189,39 +239,25 @@ def _cholesky_failures(A):
     return np.concatenate([_cholesky_failures(A[:half]), half + _cholesky_failures(A[half:])])
 
 
-def _colour(H, R, L, P):
-    """Joint covariances ``A = D R D^T`` (rows, Nn, Nn) and their unfactorisable rows.
+def _unfactorisable(L, P, dof, normal_rng, chi_rng, out):
+    """Draw into ``out`` (:func:`_sample_coloured`); return the rows numpy cannot factorise.
 
-    ``L``, ``P`` (rows or 1, N, n, n). ``A`` is exactly symmetric with diagonal blocks exactly
-    ``P``. ``G = D H`` is lower triangular, so the pivots of A's Cholesky factorisation are
-    ``diag(D) diag(H)``; rows whose smallest pivot ratio ``G_ii^2 / A_ii`` is below
-    ``_SUSPECT_PIVOT_RATIO`` are tested with numpy's Cholesky factorisation, and the indices
-    of those it rejects are returned.
+    Rows whose smallest pivot ratio is below ``_SUSPECT_PIVOT_RATIO`` are tested with
+    numpy's Cholesky factorisation; the indices of those it rejects are returned.
     """
-    rows, dim = R.shape[0], R.shape[-1]
-    count, n = L.shape[-3], L.shape[-1]
-    D = np.zeros((L.shape[0], dim, dim))
-    for i in range(count):
-        D[:, i * n:(i + 1) * n, i * n:(i + 1) * n] = L[:, i]
-    A = D @ R @ _transpose(D)
-    upper = np.triu_indices(dim, 1)
-    A[:, upper[0], upper[1]] = A[:, upper[1], upper[0]]
-    for i in range(count):
-        A[:, i * n:(i + 1) * n, i * n:(i + 1) * n] = P[:, i]
-    pivots = np.broadcast_to(_diagonal(D), (rows, dim)) * _diagonal(H)
-    ratio = (pivots**2 / _diagonal(A)).min(axis=-1)
+    ratio = _sample_coloured(L, P, dof, normal_rng, chi_rng, out)
     suspects = np.flatnonzero(~(ratio >= _SUSPECT_PIVOT_RATIO))
-    failed = suspects[_cholesky_failures(A[suspects])] if suspects.size else suspects
-    return A, failed
+    return suspects[_cholesky_failures(out[suspects])] if suspects.size else suspects
 
 
 def _sample_joint(L, P, dof, size, rng):
     """Joint covariance samples (..., size, N n, N n) for factors ``L`` (..., N, n, n).
 
-    Whitened samples (:func:`_sample_whitened`) in chunks of rows (problem, sample), coloured
-    with the inputs' factors. The rare samples that numpy cannot factorise (nearly full
-    correlation with badly conditioned blocks) are drawn again from the redraw stream, all
-    of them together after the last chunk, so the result does not depend on the chunking.
+    The whitened construction multiplied out with the inputs' factors
+    (:func:`_sample_coloured`), in chunks of rows (problem, sample). The rare samples that
+    numpy cannot factorise (nearly full correlation with badly conditioned blocks) are drawn
+    again from the redraw stream, all of them together after the last chunk, so the result
+    does not depend on the chunking.
     """
     batch, count, n = L.shape[:-3], L.shape[-3], L.shape[-1]
     dim = count * n
@@ -241,8 +277,8 @@ def _sample_joint(L, P, dof, size, rng):
     chunk = _chunk_rows(dim)
     for start in range(0, total, chunk):
         stop = min(start + chunk, total)
-        H, R = _sample_whitened(stop - start, count, n, dof, normal_rng, chi_rng)
-        joint[start:stop], bad = _colour(H, R, *problem_rows(np.arange(start, stop)))
+        L_rows, P_rows = problem_rows(np.arange(start, stop))
+        bad = _unfactorisable(L_rows, P_rows, dof, normal_rng, chi_rng, joint[start:stop])
         failed.append(start + bad)
     failed = np.concatenate(failed)
     for attempt in range(_MAX_REDRAWS + 1):
@@ -256,8 +292,8 @@ def _sample_joint(L, P, dof, size, rng):
                 f"conditioned for dof = {dof:g} (largest condition number {cond:.3g}); a "
                 "larger dof puts less prior mass near full correlation"
             )
-        H, R = _sample_whitened(failed.size, count, n, dof, redraw_rng, redraw_rng)
-        fresh, bad = _colour(H, R, *problem_rows(failed))
+        fresh = np.empty((failed.size, dim, dim))
+        bad = _unfactorisable(*problem_rows(failed), dof, redraw_rng, redraw_rng, fresh)
         joint[failed] = fresh
         failed = failed[bad]
     return joint.reshape(batch + (size, dim, dim))
