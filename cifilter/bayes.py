@@ -635,7 +635,7 @@ def bayesian_fusion(xs, Ps, dof=None, samples=100, rng=None):
     ``x_ref`` made of those estimates' components. The result transforms exactly under a
     change of units ``x -> T x``, ``P -> T P T`` for a diagonal ``T`` (the whitened draws do not
     depend on the ``P_i``), to rounding. A result that is not finite and positive definite
-    raises :class:`IllConditionedError`.
+    raises ``IllConditionedError``.
 
     Cost and memory: M whitened samples and M QR factorisations of (N n) x n matrices per
     fusion, processed in chunks of about 2^19 / (N n)^2 samples, problem after problem; the
