@@ -350,17 +350,17 @@ def sample_joint_covariances(Ps, dof, size, rng=None):
 
     Notes
     -----
-    Each sample is drawn in whitened form, ``R = D^-1 A D^-T`` with ``D`` the block
-    diagonal of the blocks' Cholesky factors: ``R`` has identity diagonal blocks, its law
-    does not depend on the blocks, and the sampler builds its Cholesky factor ``H``
-    (lower triangular, positive diagonal) directly, so that ``A = D R D^T`` is positive
-    definite by construction with Cholesky factor ``D H``. The rare samples that are
+    Each sample is the whitened sample ``R = D^-1 A D^-T`` (``D`` the block diagonal of the
+    blocks' Cholesky factors; ``R`` has identity diagonal blocks and a law that does not
+    depend on the blocks) multiplied out: the sampler builds the Cholesky factor
+    ``G = D H`` of ``A`` (lower triangular, positive diagonal; ``H`` that of ``R``)
+    directly, so ``A`` is positive definite by construction. The rare samples that are
     singular once rounded (nearly full correlation with badly conditioned blocks; the
-    pivots of ``D H`` flag them for free) are drawn again, so that every returned sample
+    pivots of ``G`` flag them for free) are drawn again, so that every returned sample
     passes a Cholesky factorisation; the law is conditioned on an event of small
     probability (at ``dof = N*n``, two blocks: 2e-5 of the draws for condition numbers 1e6
-    and 1e9, 1e-3 for 1e12, none in 4e5 draws for well-conditioned blocks). The density exists for
-    ``dof > N*n - 1``, but the papers define the Wishart distribution for ``dof >= N*n``;
+    and 1e9, 1e-3 for 1e12, none in 4e5 draws for well-conditioned blocks). The density
+    exists for ``dof > N*n - 1``, but the papers define the Wishart distribution for ``dof >= N*n``;
     below that the last stage's chi-square draws have fewer than one degree of freedom and
     the prior piles onto full correlation. The conference version states Theorem 1 with
     ``S ~ W(n, I)``; Lemma 3 applied to eq. (10) gives ``W(n - k/2, I)``, which is the
@@ -374,11 +374,11 @@ def sample_joint_covariances(Ps, dof, size, rng=None):
     ``A``).
 
     Memory: the output holds ``size * (N n)^2`` floats per problem (128 MB per million
-    samples of a 4x4 joint covariance), which is inherent to
-    returning them; beyond it the sampler uses a few arrays of one chunk (about 4 MB each).
-    To average a function of many samples, use :func:`bayesian_fusion` or call this in
-    pieces with a Generator. Vectorised over samples and batch; the Python loops run over
-    the chunks and the N - 1 stages.
+    samples of a 4x4 joint covariance), which is inherent to returning them; beyond it
+    the sampler uses a few arrays of one chunk (about 4 MB each). To average a function of
+    many samples, use :func:`bayesian_fusion` or call this in pieces with a Generator.
+    Vectorised over samples and batch; the Python loops run over the chunks and the N - 1
+    stages.
 
     References
     ----------
