@@ -43,6 +43,7 @@ from .ei import (
     _check_options,
     _check_two,
     _solve,
+    check_result,
     covariance_regularised_base,
     decompose,
     ei_in_whitened,
@@ -506,13 +507,18 @@ def _pc_in_whitened(w, gamma, eps, mutual_mean, regularizer, tol, max_iter):
         # Assemble eqs. (7)-(8) with the new common information; keep EI elsewhere.
         w_use = type(w)(*(field[use] for field in w))._replace(d=1.0 / lam[use])
         J, A, B = J0[use] - N[use], A0[use] + N[use], B0[use] + N[use]
-        pc = _fuse_pc(w_use, J, A, B, mutual_mean, eps, closed[use], tie[use])
+        # the fused information I + diag(lam) - J without the cancellation of J0 - N
+        M = (np.eye(n) + lam[use, :, None] * np.eye(n) - J0[use]) + N[use]
+        pc = _fuse_pc(w_use, J, A, B, M, mutual_mean, eps, closed[use], tie[use])
         fused = type(fused)(*(_replace_rows(full, use, part) for full, part in zip(fused, pc)))
     return fused, info
 
 
-def _fuse_pc(w, J, A, B, mutual_mean, eps, closed, tie):
+def _fuse_pc(w, J, A, B, M, mutual_mean, eps, closed, tie):
     """Fuse with PC's common information; closed-form problems have a singular ``A + B``.
+
+    ``M`` is the fused information ``I + diag(lam) - J`` (whitened), positive definite
+    by construction (``N >= 0`` added to EI's).
 
     There the mutual mean is the average in the tied directions (``A = B`` there, for
     both weightings) and EI's in the others (where ``N`` is zero).
@@ -527,7 +533,7 @@ def _fuse_pc(w, J, A, B, mutual_mean, eps, closed, tie):
         sub = type(w)(*(field[closed] for field in w))
         ratio = np.where(tie[closed], 0.5, mean_ratio(sub, eps, mutual_mean))
         R_a[closed] = ratio[..., None] * np.eye(n)
-    return fuse_full(w, J, A, B, mutual_mean, R_a=R_a)
+    return fuse_full(w, J, A, B, mutual_mean, R_a=R_a, information=M)
 
 
 def _replace_rows(full, index, part):
@@ -667,7 +673,8 @@ def _pcei(est, alpha, eps, mutual_mean, regularizer, tol, max_iter):
     w = type(w_full)(*(_flat(field, batch, size) for field in w_full))
     gamma = _gamma(alpha, n)
     fused, info = _pc_in_whitened(w, gamma, eps, mutual_mean, regularizer, tol, max_iter)
-    x, P, gains, extra = to_original(w, fused)
+    x, P, gains, extra = to_original(w, fused, _flat(est.x, batch, size))
+    check_result(P, est)
     info.update(extra)
     out = {key: value.reshape(batch + value.shape[1:]) for key, value in info.items()}
     x, P, gains = (v.reshape(batch + v.shape[1:]) for v in (x, P, gains))

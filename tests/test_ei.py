@@ -186,7 +186,7 @@ def test_equal_covariances_give_the_average_without_nan(mutual_mean):
     xa, xb = np.array([1.0, 0.0, 2.0]), np.array([-1.0, 4.0, 0.0])
     for eps in (0.0, 1e-8):
         r = ellipsoidal_intersection(xa, P, xb, P.copy(), eps=eps, mutual_mean=mutual_mean)
-        np.testing.assert_allclose(r.x, (xa + xb) / 2, rtol=1e-9)
+        np.testing.assert_allclose(r.x, (xa + xb) / 2, rtol=1e-9, atol=1e-14)
         np.testing.assert_allclose(r.P, P, rtol=1e-9)
         np.testing.assert_allclose(r.info["common_P"], P, rtol=1e-9)
         assert r.info["ties"] == 3
