@@ -117,9 +117,11 @@ def _check_options(mutual_mean, regularizer, eps):
 
 # --------------------------------------------------------------------------- whitening
 class Whitened(NamedTuple):
-    """Two estimates in the coordinates ``u = T^-1 x`` of eq. (12).
+    """Two estimates in the coordinates ``u = T^-1 x`` of eq. (12), and EI's covariances.
 
     ``Pa = T T^T`` and ``Pb = T diag(d) T^T``; ``a``, ``b`` are the whitened means.
+    ``F`` is a factor of EI's fused covariance ``P_EI = F F^T`` and ``S = Pa + Pb``,
+    both in the original coordinates (see ``whiten``).
     """
 
     T: np.ndarray  # (..., n, n)
@@ -127,6 +129,8 @@ class Whitened(NamedTuple):
     d: np.ndarray  # (..., n), generalised eigenvalues of (Pb, Pa)
     a: np.ndarray  # (..., n)
     b: np.ndarray  # (..., n)
+    F: np.ndarray  # (..., n, n), nonsingular, P_EI = F F^T
+    S: np.ndarray  # (..., n, n), Pa + Pb
 
     @property
     def lam(self):
@@ -134,45 +138,91 @@ class Whitened(NamedTuple):
         return 1.0 / self.d
 
 
-def whiten(est):
+def _orthonormal_columns(Y):
+    """``Q`` with orthonormal columns such that, for every k, the first k columns of ``Q``
+    span those of ``Y`` (stacks of nonsingular ``Y``).
+
+    Classical Gram-Schmidt with one reorthogonalisation, vectorised over the batch (the
+    loop runs over the n columns); column-wise backward stable like Householder QR and,
+    for n <= 6, several times faster than numpy's batched ``qr``.
+    """
+    n = Y.shape[-1]
+    Q = np.empty_like(Y)
+    for j in range(n):
+        v = Y[..., :, j]
+        if j:
+            basis = Q[..., :, :j]
+            for _ in range(2):
+                v = v - np.einsum("...ik,...k->...i", basis,
+                                  np.einsum("...ik,...i->...k", basis, v))
+        Q[..., :, j] = v / np.sqrt(np.einsum("...i,...i->...", v, v))[..., None]
+    return Q
+
+
+def whiten(est, factor=True):
     """Simultaneous diagonalisation of the two covariances of ``est`` (eq. (12)).
 
     Eq. (12) whitens with ``C_a`` and eigen-decomposes ``C_a^-1/2 C_b C_a^-1/2``. That
     matrix has condition number up to ``cond(Pa) cond(Pb)``: its small eigenvalues (the
     directions where ``b`` is the more informative input) are rounding noise, even
-    negative, and so is EI's covariance built from them. Here the pencil is whitened
-    with the sum instead, ``Pa + Pb = Ls Ls^T``, and
+    negative, and so was EI's covariance ``T diag(min(1, d)) T^T`` built from them.
+
+    Here the pencil is whitened with the sum, ``Pa + Pb = Ls Ls^T``, and
 
         Ls^-1 (Pa - Pb) Ls^-T = W diag(c^2 - s^2) W^T,   c^2 + s^2 = 1,
 
     is decomposed: its entries are bounded by 1 and its error is of order
     ``eps_mach max(cond(Pa), cond(Pb))``, not their product. The columns ``g`` of
-    ``G = Ls W`` are the generalised eigenvectors; each input's variance along them is
-    taken from its own Cholesky factor, ``1 / q_a = 1 / |La^-1 g|^2`` and
-    ``1 / q_b = 1 / |Lb^-1 g|^2``, which are accurate where they are the smaller of the
-    two (the only place EI uses them). Then ``T = G diag(q_a^-1/2)`` and
-    ``d = q_a / q_b``; ``T^-1 = diag(q_a^1/2) W^T Ls^-1`` is the exact inverse of
-    ``T`` even where ``W`` is perturbed, so the map back to the original coordinates
-    is consistent. ``d`` is in ascending order.
+    ``G = Ls W`` are the generalised eigenvectors; each input's information along them
+    is taken from its own Cholesky factor, ``q_a = |La^-1 g|^2`` and
+    ``q_b = |Lb^-1 g|^2``. Then ``T = G diag(q_a^-1/2)``, ``d = q_a / q_b`` (in
+    ascending order) and ``T^-1 = diag(q_a^1/2) W^T Ls^-1``, an exact inverse of ``T``
+    even where ``W`` is perturbed.
 
-    ``T`` is unique up to rotations inside eigenspaces of repeated ``d``, on which
-    ``max(d, 1)`` is constant, so every EI quantity is unaffected by that choice.
+    EI's covariance: the decomposition separates the directions where ``a`` is the
+    more informative input (``c^2 <= s^2``, set ``A``) from those where ``b`` is (set
+    ``B``), except near ties, where the choice does not matter; it need not resolve the
+    directions inside a set, whose eigenvalues may cluster far below its accuracy. So
+
+        P_EI = La Pi_A La^T + Lb Pi_B Lb^T,
+
+    with ``Pi_A`` the orthogonal projector onto ``La^-1 span(G_A)`` and ``Pi_B`` that onto
+    ``Lb^-1 span(G_B)``: in exact arithmetic ``G_A (G_A^T Pa^-1 G_A)^-1 G_A^T +
+    G_B (G_B^T Pb^-1 G_B)^-1 G_B^T = T diag(min(1, d)) T^T`` for any basis of each set
+    (eq. (8) with eq. (11)). It is assembled as ``F F^T`` with ``F = [La Q_A, Lb Q_B]``
+    (orthonormal bases ``Q``), nonsingular because ``G`` is: positive definite by
+    construction, and accurate to about ``eps_mach`` times the inputs' condition
+    numbers in every direction. With ``factor=False`` (callers that do not use EI's own
+    covariance) ``F`` and ``S`` are ``None``.
     """
     P, L = est.P, est.L
-    Ls = cholesky(P[..., 0, :, :] + P[..., 1, :, :], "Pa + Pb")
+    S = P[..., 0, :, :] + P[..., 1, :, :]
+    Ls = np.linalg.cholesky(S)  # positive definite: Pa and Pb passed their checks
     Ls_inv = lower_inverse(Ls)
     D = symmetrize(Ls_inv @ (P[..., 0, :, :] - P[..., 1, :, :]) @ np.swapaxes(Ls_inv, -1, -2))
-    _, W = np.linalg.eigh(D)  # c^2 - s^2 ascending: d = s^2 / c^2 descending
-    W = W[..., ::-1]
+    delta, W = np.linalg.eigh(D)  # c^2 - s^2 ascending
+    W, delta = W[..., ::-1], delta[..., ::-1]  # set B (c^2 > s^2) first, then A
     G = Ls @ W
-    # q_a and q_b in one batched triangular solve: L is (..., 2, n, n)
-    q = np.sum(solve_lower(L, G[..., None, :, :]) ** 2, axis=-2)
+    # La^-1 G and Lb^-1 G in one batched triangular solve: L is (..., 2, n, n)
+    Y = solve_lower(L, G[..., None, :, :])
+    q = np.einsum("...ij,...ij->...j", Y, Y)
     q_a, q_b = q[..., 0, :], q[..., 1, :]
-    T = G / np.sqrt(q_a)[..., None, :]
-    T_inv = np.sqrt(q_a)[..., :, None] * (np.swapaxes(W, -1, -2) @ Ls_inv)
+    root = np.sqrt(q_a)
+    T = G / root[..., None, :]
+    T_inv = root[..., :, None] * (np.swapaxes(W, -1, -2) @ Ls_inv)
     a = np.einsum("...ij,...j->...i", T_inv, est.x[..., 0, :])
     b = np.einsum("...ij,...j->...i", T_inv, est.x[..., 1, :])
-    return Whitened(T, T_inv, q_a / q_b, a, b)
+    if not factor:
+        return Whitened(T, T_inv, q_a / q_b, a, b, None, None)
+    # Bases: the first m_A columns of Q_A span La^-1 G_A (G_A reversed to the front),
+    # the first m_B columns of Q_B span Lb^-1 G_B.
+    n = G.shape[-1]
+    Q = _orthonormal_columns(np.stack([Y[..., 0, :, ::-1], Y[..., 1, :, :]], axis=-3))
+    LQ = L @ Q
+    m_a = n - np.sum(delta > 0, axis=-1)
+    F = np.where(np.arange(n) < m_a[..., None, None], LQ[..., 0, :, :],
+                 LQ[..., 1, :, ::-1])
+    return Whitened(T, T_inv, q_a / q_b, a, b, F, S)
 
 
 def ties(d, eps):
@@ -276,20 +326,32 @@ def psi_at_ei(w, tie, mutual_mean):
 
 # --------------------------------------------------------------------------- fusion
 class Fused(NamedTuple):
-    """A fused estimate in whitened coordinates and its pieces.
+    """A fused estimate: covariances in the original coordinates, the rest whitened.
 
-    Covariances are held as square roots (``P_u = P_root P_root^T``), so that the
-    covariances mapped back by ``to_original`` are Gram matrices, positive
-    semidefinite by construction and definite whenever the root is nonsingular.
+    ``P`` and ``common_P`` are Gram matrices of nonsingular factors (positive definite
+    by construction). EI's closed form is diagonal in ``K_a``, ``A`` and ``B``: then these
+    are the diagonals, shape (..., n) (see ``as_full``).
     """
 
-    P_root: np.ndarray  # (..., n, n), fused covariance P_u = P_root P_root^T
-    K_a: np.ndarray  # (..., n, n), gain of a (that of b is I - K_a)
-    m: np.ndarray  # (..., n) mutual mean
-    C_root: np.ndarray  # (..., n, n), common covariance C_u = C_root C_root^T
-    A: np.ndarray  # (..., n, n) independent information of a
-    B: np.ndarray  # (..., n, n) independent information of b
-    eta: np.ndarray  # (..., 2, n) independent information vectors
+    P: np.ndarray  # (..., n, n), fused covariance (original coordinates)
+    K_a: np.ndarray  # (..., n, n), gain of a (that of b is I - K_a), whitened
+    m: np.ndarray  # (..., n) mutual mean, whitened
+    common_P: np.ndarray  # (..., n, n), common covariance (original coordinates)
+    A: np.ndarray  # (..., n, n) independent information of a, whitened
+    B: np.ndarray  # (..., n, n) independent information of b, whitened
+    eta: np.ndarray  # (..., 2, n) independent information vectors, whitened
+
+    @property
+    def diagonal(self):
+        return self.K_a.ndim == self.m.ndim
+
+
+def as_full(fused):
+    """``fused`` with diagonal fields (EI's closed form) expanded to matrices."""
+    if not fused.diagonal:
+        return fused
+    return fused._replace(K_a=_diagonal(fused.K_a), A=_diagonal(fused.A),
+                          B=_diagonal(fused.B))
 
 
 def mean_ratio(w, eps, mutual_mean):
@@ -320,7 +382,10 @@ def fuse_diagonal(w, eps, mutual_mean):
 
     The gain of ``a`` is ``k_a = min(1, d) (1 - R_a / c)``, evaluated without
     cancellation as ``1 - R_a / d`` (``d >= 1``) or ``d R_b`` (``d < 1``); that of ``b``
-    is ``1 - k_a``.
+    is ``1 - k_a``. The fused covariance ``T diag(min(1, d)) T^T`` is ``F F^T`` of
+    ``whiten`` and the common covariance ``T diag(max(d, 1)) T^T = Pa + Pb - P``
+    (``max + min = sum``; it is at least ``(Pa + Pb) / 2``, so the difference loses
+    nothing).
     """
     d, lam = w.d, w.lam
     c = np.maximum(d, 1.0)
@@ -328,12 +393,11 @@ def fuse_diagonal(w, eps, mutual_mean):
     R_a = mean_ratio(w, eps, mutual_mean)
     R_b = 1.0 - R_a
     m = R_a * w.a + R_b * w.b
-    variance = np.minimum(1.0, d)
-    k_a = np.where(d >= 1.0, 1.0 - R_a / c, variance * R_b)
+    k_a = np.where(d >= 1.0, 1.0 - R_a / c, d * R_b)
     common_info = np.minimum(1.0, lam)
     eta_vec = np.stack([w.a - common_info * m, lam * w.b - common_info * m], axis=-2)
-    return Fused(_diagonal(np.sqrt(variance)), _diagonal(k_a), m, _diagonal(np.sqrt(c)),
-                 _diagonal(alpha), _diagonal(beta), eta_vec)
+    P = _gram(w.F)
+    return Fused(P, k_a, m, symmetrize(w.S - P), alpha, beta, eta_vec)
 
 
 def _inverse_root(M, name):
@@ -356,8 +420,8 @@ def fuse_full(w, J, A, B, mutual_mean, R_a=None, information=None, C_root=None):
     is ``M = I + diag(lam) - J`` (eq. (8); pass ``information`` when a form without
     cancellation is known) and ``K_a = M^-1 (I - J R_a)``, ``K_b = I - K_a``
     ``= M^-1 (diag(lam) - J R_b)``, so that ``x = K_a a + K_b b``. The covariances are
-    returned as roots through Cholesky factors: ``P_u = L^-T L^-1`` with ``M = L L^T``,
-    and ``C = J^-1`` likewise unless ``C_root`` is given.
+    mapped back as Gram matrices through Cholesky factors: ``P = (T L^-T)(T L^-T)^T``
+    with ``M = L L^T``, and ``C = J^-1`` likewise unless its root ``C_root`` is given.
     """
     n = J.shape[-1]
     eye = np.eye(n)
@@ -368,12 +432,13 @@ def fuse_full(w, J, A, B, mutual_mean, R_a=None, information=None, C_root=None):
     M = symmetrize(eye + w.lam[..., None] * eye - J if information is None else information)
     P_root = _inverse_root(M, "the fused information")
     K_a = P_root @ (np.swapaxes(P_root, -1, -2) @ (eye - J @ R_a))
+    P = _gram(w.T @ P_root)
     m = np.einsum("...ij,...j->...i", R_a, w.a) + np.einsum("...ij,...j->...i", R_b, w.b)
     Jm = np.einsum("...ij,...j->...i", J, m)
     eta_vec = np.stack([w.a - Jm, w.lam * w.b - Jm], axis=-2)
     if C_root is None:
         C_root = _inverse_root(symmetrize(J), "the common information")
-    return Fused(P_root, K_a, m, C_root, symmetrize(A), symmetrize(B), eta_vec)
+    return Fused(P, K_a, m, _gram(w.T @ C_root), symmetrize(A), symmetrize(B), eta_vec)
 
 
 def _covariance_base(w, eps):
@@ -407,21 +472,25 @@ def _gram(F):
 def to_original(w, fused, x):
     """Map a whitened fused estimate back to the original coordinates.
 
-    ``P = (T P_root)(T P_root)^T``, ``K_a = T K_u T^-1``, ``K_b = I - K_a`` and
+    ``K_a = T K_u T^-1``, ``K_b = I - K_a`` and
     ``x = K_a xa + K_b xb`` from the original means ``x`` (..., 2, n), so that the gains
     reproduce the mean and sum to the identity exactly.
     """
     T, T_inv = w.T, w.T_inv
     T_inv_t = np.swapaxes(T_inv, -1, -2)
-    P = _gram(T @ fused.P_root)
-    K_a = T @ fused.K_a @ T_inv
+    P, common_P = fused.P, fused.common_P
+    if fused.diagonal:  # column and row scalings instead of products
+        K_a = (T * fused.K_a[..., None, :]) @ T_inv
+        roots = np.sqrt(np.stack([fused.A, fused.B], axis=-2))[..., None]
+        information = _gram(np.swapaxes(roots * T_inv[..., None, :, :], -1, -2))
+    else:
+        K_a = T @ fused.K_a @ T_inv
+        information = np.stack([symmetrize(T_inv_t @ fused.A @ T_inv),
+                                symmetrize(T_inv_t @ fused.B @ T_inv)], axis=-3)
     K_b = np.eye(K_a.shape[-1]) - K_a
     gains = np.stack([K_a, K_b], axis=-3)
     x_fused = np.einsum("...kij,...kj->...i", gains, x)
     common_x = np.einsum("...ij,...j->...i", T, fused.m)
-    common_P = _gram(T @ fused.C_root)
-    information = np.stack([symmetrize(T_inv_t @ fused.A @ T_inv),
-                            symmetrize(T_inv_t @ fused.B @ T_inv)], axis=-3)
     vectors = np.einsum("...ij,...kj->...ki", T_inv_t, fused.eta)
     return x_fused, P, gains, {"common_x": common_x, "common_P": common_P,
                                "independent_information": information,
@@ -576,7 +645,7 @@ def ellipsoidal_intersection(xa, Pa, xb, Pb, eps=DEFAULT_EPS, *, mutual_mean="si
 
 def _ei(est, eps, mutual_mean, regularizer):
     eps = _check_options(mutual_mean, regularizer, eps)
-    w = whiten(est)
+    w = whiten(est, factor=not (regularizer == "covariance" and eps > 0))
     fused, psi = ei_in_whitened(w, eps, mutual_mean, regularizer)
     x, P, gains, info = to_original(w, fused, est.x)
     check_result(P, est)
