@@ -21,7 +21,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._linalg import diagonalise_pair, symmetrize
+from ._linalg import (
+    IllConditionedError,
+    cho_inverse,
+    cholesky,
+    condition_number,
+    ill_conditioned,
+    lower_inverse,
+    solve_lower,
+    symmetrize,
+)
 from ._validation import (
     Estimates,
     as_estimates,
@@ -108,9 +117,11 @@ def _check_options(mutual_mean, regularizer, eps):
 
 # --------------------------------------------------------------------------- whitening
 class Whitened(NamedTuple):
-    """Two estimates in the coordinates ``u = T^-1 x`` of eq. (12).
+    """Two estimates in the coordinates ``u = T^-1 x`` of eq. (12), and EI's covariances.
 
     ``Pa = T T^T`` and ``Pb = T diag(d) T^T``; ``a``, ``b`` are the whitened means.
+    ``F`` is a factor of EI's fused covariance ``P_EI = F F^T`` and ``S = Pa + Pb``,
+    both in the original coordinates (see ``whiten``).
     """
 
     T: np.ndarray  # (..., n, n)
@@ -118,6 +129,8 @@ class Whitened(NamedTuple):
     d: np.ndarray  # (..., n), generalised eigenvalues of (Pb, Pa)
     a: np.ndarray  # (..., n)
     b: np.ndarray  # (..., n)
+    F: np.ndarray  # (..., n, n), nonsingular, P_EI = F F^T
+    S: np.ndarray  # (..., n, n), Pa + Pb
 
     @property
     def lam(self):
@@ -125,18 +138,91 @@ class Whitened(NamedTuple):
         return 1.0 / self.d
 
 
-def whiten(est):
+def _orthonormal_columns(Y):
+    """``Q`` with orthonormal columns such that, for every k, the first k columns of ``Q``
+    span those of ``Y`` (stacks of nonsingular ``Y``).
+
+    Classical Gram-Schmidt with one reorthogonalisation, vectorised over the batch (the
+    loop runs over the n columns); column-wise backward stable like Householder QR and,
+    for n <= 6, several times faster than numpy's batched ``qr``.
+    """
+    n = Y.shape[-1]
+    Q = np.empty_like(Y)
+    for j in range(n):
+        v = Y[..., :, j]
+        if j:
+            basis = Q[..., :, :j]
+            for _ in range(2):
+                v = v - np.einsum("...ik,...k->...i", basis,
+                                  np.einsum("...ik,...i->...k", basis, v))
+        Q[..., :, j] = v / np.sqrt(np.einsum("...i,...i->...", v, v))[..., None]
+    return Q
+
+
+def whiten(est, factor=True):
     """Simultaneous diagonalisation of the two covariances of ``est`` (eq. (12)).
 
-    Eq. (12) uses the eigen-decomposition of ``C_a``; the Cholesky factor gives the same
-    ``T diag(max(d, 1)) T^T`` (``T`` is unique up to rotations inside eigenspaces of
-    repeated ``d``, on which ``max(d, 1)`` is constant) and is cheaper.
+    Eq. (12) whitens with ``C_a`` and eigen-decomposes ``C_a^-1/2 C_b C_a^-1/2``. That
+    matrix has condition number up to ``cond(Pa) cond(Pb)``: its small eigenvalues (the
+    directions where ``b`` is the more informative input) are rounding noise, even
+    negative, and so was EI's covariance ``T diag(min(1, d)) T^T`` built from them.
+
+    Here the pencil is whitened with the sum, ``Pa + Pb = Ls Ls^T``, and
+
+        Ls^-1 (Pa - Pb) Ls^-T = W diag(c^2 - s^2) W^T,   c^2 + s^2 = 1,
+
+    is decomposed: its entries are bounded by 1 and its error is of order
+    ``eps_mach max(cond(Pa), cond(Pb))``, not their product. The columns ``g`` of
+    ``G = Ls W`` are the generalised eigenvectors; each input's information along them
+    is taken from its own Cholesky factor, ``q_a = |La^-1 g|^2`` and
+    ``q_b = |Lb^-1 g|^2``. Then ``T = G diag(q_a^-1/2)``, ``d = q_a / q_b`` (in
+    ascending order) and ``T^-1 = diag(q_a^1/2) W^T Ls^-1``, an exact inverse of ``T``
+    even where ``W`` is perturbed.
+
+    EI's covariance: the decomposition separates the directions where ``a`` is the
+    more informative input (``c^2 <= s^2``, set ``A``) from those where ``b`` is (set
+    ``B``), except near ties, where the choice does not matter; it need not resolve the
+    directions inside a set, whose eigenvalues may cluster far below its accuracy. So
+
+        P_EI = La Pi_A La^T + Lb Pi_B Lb^T,
+
+    with ``Pi_A`` the orthogonal projector onto ``La^-1 span(G_A)`` and ``Pi_B`` that onto
+    ``Lb^-1 span(G_B)``: in exact arithmetic ``G_A (G_A^T Pa^-1 G_A)^-1 G_A^T +
+    G_B (G_B^T Pb^-1 G_B)^-1 G_B^T = T diag(min(1, d)) T^T`` for any basis of each set
+    (eq. (8) with eq. (11)). It is assembled as ``F F^T`` with ``F = [La Q_A, Lb Q_B]``
+    (orthonormal bases ``Q``), nonsingular because ``G`` is: positive definite by
+    construction, and accurate to about ``eps_mach`` times the inputs' condition
+    numbers in every direction. With ``factor=False`` (callers that do not use EI's own
+    covariance) ``F`` and ``S`` are ``None``.
     """
-    pair = diagonalise_pair(est.L[..., 0, :, :], est.P[..., 1, :, :])
-    T_inv = np.swapaxes(pair.U, -1, -2) @ pair.L1_inv
+    P, L = est.P, est.L
+    S = P[..., 0, :, :] + P[..., 1, :, :]
+    Ls = np.linalg.cholesky(S)  # positive definite: Pa and Pb passed their checks
+    Ls_inv = lower_inverse(Ls)
+    D = symmetrize(Ls_inv @ (P[..., 0, :, :] - P[..., 1, :, :]) @ np.swapaxes(Ls_inv, -1, -2))
+    delta, W = np.linalg.eigh(D)  # c^2 - s^2 ascending
+    W, delta = W[..., ::-1], delta[..., ::-1]  # set B (c^2 > s^2) first, then A
+    G = Ls @ W
+    # La^-1 G and Lb^-1 G in one batched triangular solve: L is (..., 2, n, n)
+    Y = solve_lower(L, G[..., None, :, :])
+    q = np.einsum("...ij,...ij->...j", Y, Y)
+    q_a, q_b = q[..., 0, :], q[..., 1, :]
+    root = np.sqrt(q_a)
+    T = G / root[..., None, :]
+    T_inv = root[..., :, None] * (np.swapaxes(W, -1, -2) @ Ls_inv)
     a = np.einsum("...ij,...j->...i", T_inv, est.x[..., 0, :])
     b = np.einsum("...ij,...j->...i", T_inv, est.x[..., 1, :])
-    return Whitened(pair.T, T_inv, pair.lam, a, b)
+    if not factor:
+        return Whitened(T, T_inv, q_a / q_b, a, b, None, None)
+    # Bases: the first m_A columns of Q_A span La^-1 G_A (G_A reversed to the front),
+    # the first m_B columns of Q_B span Lb^-1 G_B.
+    n = G.shape[-1]
+    Q = _orthonormal_columns(np.stack([Y[..., 0, :, ::-1], Y[..., 1, :, :]], axis=-3))
+    LQ = L @ Q
+    m_a = n - np.sum(delta > 0, axis=-1)
+    F = np.where(np.arange(n) < m_a[..., None, None], LQ[..., 0, :, :],
+                 LQ[..., 1, :, ::-1])
+    return Whitened(T, T_inv, q_a / q_b, a, b, F, S)
 
 
 def ties(d, eps):
@@ -240,17 +326,32 @@ def psi_at_ei(w, tie, mutual_mean):
 
 # --------------------------------------------------------------------------- fusion
 class Fused(NamedTuple):
-    """A fused estimate in whitened coordinates and its pieces."""
+    """A fused estimate: covariances in the original coordinates, the rest whitened.
 
-    x: np.ndarray  # (..., n)
-    P: np.ndarray  # (..., n, n)
-    K_a: np.ndarray  # (..., n, n)
-    K_b: np.ndarray  # (..., n, n)
-    m: np.ndarray  # (..., n) mutual mean
-    C: np.ndarray  # (..., n, n) common covariance
-    A: np.ndarray  # (..., n, n) independent information of a
-    B: np.ndarray  # (..., n, n) independent information of b
-    eta: np.ndarray  # (..., 2, n) independent information vectors
+    ``P`` and ``common_P`` are Gram matrices of nonsingular factors (positive definite
+    by construction). EI's closed form is diagonal in ``K_a``, ``A`` and ``B``: then these
+    are the diagonals, shape (..., n) (see ``as_full``).
+    """
+
+    P: np.ndarray  # (..., n, n), fused covariance (original coordinates)
+    K_a: np.ndarray  # (..., n, n), gain of a (that of b is I - K_a), whitened
+    m: np.ndarray  # (..., n) mutual mean, whitened
+    common_P: np.ndarray  # (..., n, n), common covariance (original coordinates)
+    A: np.ndarray  # (..., n, n) independent information of a, whitened
+    B: np.ndarray  # (..., n, n) independent information of b, whitened
+    eta: np.ndarray  # (..., 2, n) independent information vectors, whitened
+
+    @property
+    def diagonal(self):
+        return self.K_a.ndim == self.m.ndim
+
+
+def as_full(fused):
+    """``fused`` with diagonal fields (EI's closed form) expanded to matrices."""
+    if not fused.diagonal:
+        return fused
+    return fused._replace(K_a=_diagonal(fused.K_a), A=_diagonal(fused.A),
+                          B=_diagonal(fused.B))
 
 
 def mean_ratio(w, eps, mutual_mean):
@@ -264,6 +365,10 @@ def mean_ratio(w, eps, mutual_mean):
     return np.where(total > 0, own / np.where(total > 0, total, 1.0), 0.5)
 
 
+def _diagonal(v):
+    return v[..., None] * np.eye(v.shape[-1])
+
+
 def fuse_diagonal(w, eps, mutual_mean):
     """EI with the information regulariser, one eigen-direction at a time (closed form).
 
@@ -274,6 +379,13 @@ def fuse_diagonal(w, eps, mutual_mean):
     variance is ``1 / (1 + 1/d - 1/c) = min(1, d)``. Where ``alpha + beta + 2 eta = 0``
     (equal variances and ``eps = 0``: the 0/0 of eq. (13)) ``R_a = 1/2``, the limit of any
     symmetric regulariser.
+
+    The gain of ``a`` is ``k_a = min(1, d) (1 - R_a / c)``, evaluated without
+    cancellation as ``1 - R_a / d`` (``d >= 1``) or ``d R_b`` (``d < 1``); that of ``b``
+    is ``1 - k_a``. The fused covariance ``T diag(min(1, d)) T^T`` is ``F F^T`` of
+    ``whiten`` and the common covariance ``T diag(max(d, 1)) T^T = Pa + Pb - P``
+    (``max + min = sum``; it is at least ``(Pa + Pb) / 2``, so the difference loses
+    nothing).
     """
     d, lam = w.d, w.lam
     c = np.maximum(d, 1.0)
@@ -281,81 +393,134 @@ def fuse_diagonal(w, eps, mutual_mean):
     R_a = mean_ratio(w, eps, mutual_mean)
     R_b = 1.0 - R_a
     m = R_a * w.a + R_b * w.b
-    variance = np.minimum(1.0, d)
-    k_a = variance * (1.0 - R_a / c)
-    k_b = variance * (lam - R_b / c)
-    x = k_a * w.a + k_b * w.b
-    eye = np.eye(d.shape[-1])
+    k_a = np.where(d >= 1.0, 1.0 - R_a / c, d * R_b)
     common_info = np.minimum(1.0, lam)
     eta_vec = np.stack([w.a - common_info * m, lam * w.b - common_info * m], axis=-2)
-    return Fused(x, variance[..., None] * eye, k_a[..., None] * eye, k_b[..., None] * eye, m,
-                 c[..., None] * eye, alpha[..., None] * eye, beta[..., None] * eye, eta_vec)
+    P = _gram(w.F)
+    return Fused(P, k_a, m, symmetrize(w.S - P), alpha, beta, eta_vec)
 
 
-def fuse_full(w, J, A, B, mutual_mean, R_a=None):
+def _inverse_root(M, name):
+    """``R`` with ``M^-1 = R R^T`` (``R = L^-T``, ``M = L L^T``) for stacks of SPD ``M``."""
+    try:
+        L = cholesky(M, name)
+    except ValueError:
+        raise IllConditionedError(
+            f"{name} is not numerically positive definite (condition number "
+            f"{float(np.max(condition_number(M))):.3g}); the inputs are too ill-conditioned "
+            "to fuse reliably") from None
+    return np.swapaxes(lower_inverse(L), -1, -2)
+
+
+def fuse_full(w, J, A, B, mutual_mean, R_a=None, information=None, C_root=None):
     """Fusion with a general common information ``J`` (whitened), eqs. (5)-(8) and (13).
 
     ``m = R_a a + R_b b`` with ``R_a = (A + B)^-1 W_a`` unless ``R_a`` is given (where
     ``A + B`` is singular and the mutual mean is known as a limit); the fused information
-    is ``I + diag(lam) - J`` and ``K_a = P (I - J R_a)``, ``K_b = P (diag(lam) - J R_b)``,
-    so that ``x = K_a a + K_b b`` and ``K_a + K_b = I``.
+    is ``M = I + diag(lam) - J`` (eq. (8); pass ``information`` when a form without
+    cancellation is known) and ``K_a = M^-1 (I - J R_a)``, ``K_b = I - K_a``
+    ``= M^-1 (diag(lam) - J R_b)``, so that ``x = K_a a + K_b b``. The covariances are
+    mapped back as Gram matrices through Cholesky factors: ``P = (T L^-T)(T L^-T)^T``
+    with ``M = L L^T``, and ``C = J^-1`` likewise unless its root ``C_root`` is given.
     """
     n = J.shape[-1]
     eye = np.eye(n)
-    lam_mat = w.lam[..., None] * eye
     if R_a is None:
         W_a, _ = mutual_mean_weights(A, B, mutual_mean)
         R_a = _solve(A + B, W_a)
     R_b = eye - R_a
-    P = symmetrize(np.linalg.inv(symmetrize(eye + lam_mat - J)))
-    K_a, K_b = P @ (eye - J @ R_a), P @ (lam_mat - J @ R_b)
+    M = symmetrize(eye + w.lam[..., None] * eye - J if information is None else information)
+    P_root = _inverse_root(M, "the fused information")
+    K_a = P_root @ (np.swapaxes(P_root, -1, -2) @ (eye - J @ R_a))
+    P = _gram(w.T @ P_root)
     m = np.einsum("...ij,...j->...i", R_a, w.a) + np.einsum("...ij,...j->...i", R_b, w.b)
-    x = np.einsum("...ij,...j->...i", K_a, w.a) + np.einsum("...ij,...j->...i", K_b, w.b)
     Jm = np.einsum("...ij,...j->...i", J, m)
     eta_vec = np.stack([w.a - Jm, w.lam * w.b - Jm], axis=-2)
-    C = symmetrize(np.linalg.inv(J))
-    return Fused(x, P, K_a, K_b, m, C, symmetrize(A), symmetrize(B), eta_vec)
+    if C_root is None:
+        C_root = _inverse_root(symmetrize(J), "the common information")
+    return Fused(P, K_a, m, _gram(w.T @ C_root), symmetrize(A), symmetrize(B), eta_vec)
+
+
+def _covariance_base(w, eps):
+    n = w.d.shape[-1]
+    eye = np.eye(n)
+    C = symmetrize(np.maximum(w.d, 1.0)[..., None] * eye
+                   + eps * w.T_inv @ np.swapaxes(w.T_inv, -1, -2))
+    L = cholesky(C, "the common covariance")
+    J = cho_inverse(L)
+    A = symmetrize(J @ (C - eye))
+    B = symmetrize(J @ (C - w.d[..., None] * eye) * w.lam[..., None, :])
+    return L, C, J, A, B
 
 
 def covariance_regularised_base(w, eps):
     """Eq. (11) with its ``eps I``: common covariance and informations (whitened).
 
-    ``C = diag(max(d, 1)) + eps T^-1 T^-T``; ``J = C^-1``, ``A = J (C - I)`` and
-    ``B = J (C - diag(d)) diag(1/d)`` are computed from the covariance gaps, which are
-    exact, instead of subtracting nearly equal informations.
+    ``C = diag(max(d, 1)) + eps T^-1 T^-T``; ``J = C^-1`` (through the Cholesky factor
+    of ``C``), ``A = J (C - I)`` and ``B = J (C - diag(d)) diag(1/d)`` are computed from
+    the covariance gaps, which are exact, instead of subtracting nearly equal
+    informations.
     """
-    n = w.d.shape[-1]
-    eye = np.eye(n)
-    C = symmetrize(np.maximum(w.d, 1.0)[..., None] * eye
-                   + eps * w.T_inv @ np.swapaxes(w.T_inv, -1, -2))
-    J = symmetrize(np.linalg.inv(C))
-    A = symmetrize(J @ (C - eye))
-    B = symmetrize(J @ (C - w.d[..., None] * eye) * w.lam[..., None, :])
-    return C, J, A, B
+    return _covariance_base(w, eps)[1:]
 
 
-def to_original(w, fused):
-    """Map a whitened fused estimate back: ``x = T u``, ``P = T P_u T^T``, ``K = T K_u T^-1``."""
+def _gram(F):
+    """``F F^T``, exactly symmetric and positive semidefinite by construction."""
+    return symmetrize(F @ np.swapaxes(F, -1, -2))
+
+
+def to_original(w, fused, x):
+    """Map a whitened fused estimate back to the original coordinates.
+
+    ``K_a = T K_u T^-1``, ``K_b = I - K_a`` and
+    ``x = K_a xa + K_b xb`` from the original means ``x`` (..., 2, n), so that the gains
+    reproduce the mean and sum to the identity exactly.
+    """
     T, T_inv = w.T, w.T_inv
-    Tt, T_inv_t = np.swapaxes(T, -1, -2), np.swapaxes(T_inv, -1, -2)
-    x = np.einsum("...ij,...j->...i", T, fused.x)
-    P = symmetrize(T @ fused.P @ Tt)
-    gains = np.stack([T @ fused.K_a @ T_inv, T @ fused.K_b @ T_inv], axis=-3)
+    T_inv_t = np.swapaxes(T_inv, -1, -2)
+    P, common_P = fused.P, fused.common_P
+    if fused.diagonal:  # column and row scalings instead of products
+        K_a = (T * fused.K_a[..., None, :]) @ T_inv
+        roots = np.sqrt(np.stack([fused.A, fused.B], axis=-2))[..., None]
+        information = _gram(np.swapaxes(roots * T_inv[..., None, :, :], -1, -2))
+    else:
+        K_a = T @ fused.K_a @ T_inv
+        information = np.stack([symmetrize(T_inv_t @ fused.A @ T_inv),
+                                symmetrize(T_inv_t @ fused.B @ T_inv)], axis=-3)
+    K_b = np.eye(K_a.shape[-1]) - K_a
+    gains = np.stack([K_a, K_b], axis=-3)
+    x_fused = np.einsum("...kij,...kj->...i", gains, x)
     common_x = np.einsum("...ij,...j->...i", T, fused.m)
-    common_P = symmetrize(T @ fused.C @ Tt)
-    information = np.stack([symmetrize(T_inv_t @ fused.A @ T_inv),
-                            symmetrize(T_inv_t @ fused.B @ T_inv)], axis=-3)
     vectors = np.einsum("...ij,...kj->...ki", T_inv_t, fused.eta)
-    return x, P, gains, {"common_x": common_x, "common_P": common_P,
-                         "independent_information": information,
-                         "independent_information_vector": vectors}
+    return x_fused, P, gains, {"common_x": common_x, "common_P": common_P,
+                               "independent_information": information,
+                               "independent_information_vector": vectors}
+
+
+def check_result(P, est):
+    """Raise ``IllConditionedError`` unless every ``P`` is finite and positive definite.
+
+    By construction ``P`` is a Gram matrix of a nonsingular factor; this guards the
+    conditioning contract against a factor that rounding made singular (only possible
+    far beyond condition numbers of ``MAX_CONDITION``).
+    """
+    good = np.isfinite(P).all(axis=(-2, -1))
+    if good.all():
+        try:
+            np.linalg.cholesky(P)
+            return
+        except np.linalg.LinAlgError:
+            pass
+    raise ill_conditioned("Pa or Pb", condition_number(est.P).max(),
+                          "gives a fused covariance that is not numerically positive "
+                          "definite")
 
 
 def ei_in_whitened(w, eps, mutual_mean, regularizer):
     """EI of whitened estimates: the fused pieces and ``psi`` at its common covariance."""
     if regularizer == "covariance" and eps > 0:
-        _, J, A, B = covariance_regularised_base(w, eps)
-        fused = fuse_full(w, J, A, B, mutual_mean)
+        L, _, J, A, B = _covariance_base(w, eps)
+        fused = fuse_full(w, J, A, B, mutual_mean, C_root=L)
         psi = decompose(A, B, J, w.a, w.b, w.lam, mutual_mean).psi
         return fused, psi
     fused = fuse_diagonal(w, eps if regularizer == "information" else 0.0, mutual_mean)
@@ -480,9 +645,10 @@ def ellipsoidal_intersection(xa, Pa, xb, Pb, eps=DEFAULT_EPS, *, mutual_mean="si
 
 def _ei(est, eps, mutual_mean, regularizer):
     eps = _check_options(mutual_mean, regularizer, eps)
-    w = whiten(est)
+    w = whiten(est, factor=not (regularizer == "covariance" and eps > 0))
     fused, psi = ei_in_whitened(w, eps, mutual_mean, regularizer)
-    x, P, gains, info = to_original(w, fused)
+    x, P, gains, info = to_original(w, fused, est.x)
+    check_result(P, est)
     info.update(psi=psi, ties=ties(w.d, eps if regularizer == "information" else 0.0).sum(-1),
                 mutual_mean=mutual_mean, regularizer=regularizer, eps=eps)
     return FusionResult(restore_style(x, est.column), P, "ei", None, gains, info)

@@ -42,7 +42,11 @@ from .ei import (
     _as_pair,
     _check_options,
     _check_two,
+    _gram,
+    _inverse_root,
     _solve,
+    as_full,
+    check_result,
     covariance_regularised_base,
     decompose,
     ei_in_whitened,
@@ -504,15 +508,42 @@ def _pc_in_whitened(w, gamma, eps, mutual_mean, regularizer, tol, max_iter):
     use = np.flatnonzero(need & info["feasible"] & info["converged"])
     if use.size:
         # Assemble eqs. (7)-(8) with the new common information; keep EI elsewhere.
-        w_use = type(w)(*(field[use] for field in w))._replace(d=1.0 / lam[use])
+        w_use = type(w)(*(None if field is None else field[use] for field in w))._replace(
+            d=1.0 / lam[use])
         J, A, B = J0[use] - N[use], A0[use] + N[use], B0[use] + N[use]
-        pc = _fuse_pc(w_use, J, A, B, mutual_mean, eps, closed[use], tie[use])
+        # the fused information I + diag(lam) - J = (I + diag(lam) - J0) + N, positive
+        # definite by construction
+        M = (np.eye(n) + lam[use, :, None] * np.eye(n) - J0[use]) + N[use]
+        pc = _fuse_pc(w_use, J, A, B, M, mutual_mean, eps, closed[use], tie[use])
+        if not (regularizer == "covariance" and eps > 0):
+            pc = pc._replace(P=_fused_covariance(w_use, N[use]))
+        fused = as_full(fused)
         fused = type(fused)(*(_replace_rows(full, use, part) for full, part in zip(fused, pc)))
     return fused, info
 
 
-def _fuse_pc(w, J, A, B, mutual_mean, eps, closed, tie):
+def _fused_covariance(w, N):
+    """The fused covariance for EI's common information less ``N`` (whitened).
+
+    With ``P_EI = F F^T`` from :func:`~cifilter.ei.whiten` and ``K = T^-1 F``, eq. (8)
+    gives ``P^-1 = P_EI^-1 + T^-T N T^-1``, so (Woodbury)
+
+        P = F (I + K^T N K)^-1 F^T,
+
+    a Gram matrix of a nonsingular factor (``I + K^T N K >= I``): positive definite by
+    construction, EI's own covariance for ``N = 0`` and as accurate as it.
+    """
+    K = w.T_inv @ w.F
+    R = _inverse_root(np.eye(N.shape[-1]) + np.swapaxes(K, -1, -2) @ N @ K,
+                      "the fused information")
+    return _gram(w.F @ R)
+
+
+def _fuse_pc(w, J, A, B, M, mutual_mean, eps, closed, tie):
     """Fuse with PC's common information; closed-form problems have a singular ``A + B``.
+
+    ``M`` is the fused information ``I + diag(lam) - J`` (whitened), positive definite
+    by construction (``N >= 0`` added to EI's).
 
     There the mutual mean is the average in the tied directions (``A = B`` there, for
     both weightings) and EI's in the others (where ``N`` is zero).
@@ -524,10 +555,10 @@ def _fuse_pc(w, J, A, B, mutual_mean, eps, closed, tie):
         W_a, _ = mutual_mean_weights(A[general], B[general], mutual_mean)
         R_a[general] = _solve(A[general] + B[general], W_a)
     if closed.any():
-        sub = type(w)(*(field[closed] for field in w))
+        sub = type(w)(*(None if field is None else field[closed] for field in w))
         ratio = np.where(tie[closed], 0.5, mean_ratio(sub, eps, mutual_mean))
         R_a[closed] = ratio[..., None] * np.eye(n)
-    return fuse_full(w, J, A, B, mutual_mean, R_a=R_a)
+    return fuse_full(w, J, A, B, mutual_mean, R_a=R_a, information=M)
 
 
 def _replace_rows(full, index, part):
@@ -661,13 +692,15 @@ def _pcei(est, alpha, eps, mutual_mean, regularizer, tol, max_iter):
     alpha = check_scalar(alpha, "alpha", low=0.0, high=1.0, low_open=True, high_open=True)
     tol = check_scalar(tol, "tol", low=0.0, high=1.0, low_open=True, high_open=True)
     max_iter = check_int(max_iter, "max_iter", low=1)
-    w_full = whiten(est)
+    w_full = whiten(est, factor=not (regularizer == "covariance" and eps > 0))
     batch, n = est.batch_shape, est.dim
     size = int(np.prod(batch, dtype=int))
-    w = type(w_full)(*(_flat(field, batch, size) for field in w_full))
+    w = type(w_full)(*(None if field is None else _flat(field, batch, size)
+                       for field in w_full))
     gamma = _gamma(alpha, n)
     fused, info = _pc_in_whitened(w, gamma, eps, mutual_mean, regularizer, tol, max_iter)
-    x, P, gains, extra = to_original(w, fused)
+    x, P, gains, extra = to_original(w, fused, _flat(est.x, batch, size))
+    check_result(P, est)
     info.update(extra)
     out = {key: value.reshape(batch + value.shape[1:]) for key, value in info.items()}
     x, P, gains = (v.reshape(batch + v.shape[1:]) for v in (x, P, gains))
