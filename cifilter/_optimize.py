@@ -180,7 +180,11 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
             # inputs). Continue along the same line instead, by the secant of the
             # derivative, up to the boundary; Newton resumes once the line is done.
             now = np.einsum("...i,...i->...", g, previous_d)
-            extend = (active & (previous_t > 0.0) & (previous_slope < 0.0)
+            # (only after a step whose slope was well above the rounding level of f, and
+            # checked by the line search like any step: at the rounding level the
+            # derivatives are noise and the extension could run to the boundary)
+            extend = (active & (previous_t > 0.0)
+                      & (-previous_slope > 64.0 * np.finfo(float).eps * np.abs(f))
                       & (now < 0.5 * previous_slope))
             d = np.where(extend[..., None], previous_d, d)
             slope = np.where(extend, now, slope)
@@ -189,7 +193,11 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         # is solved to working precision even if d exceeds xtol (flat, badly scaled problems):
         # the line search cannot tell a decrease from rounding noise there and would stall
         # until max_iter, so the problem stops after taking this last step unchecked.
-        rounding = -slope <= 4.0 * np.finfo(float).eps * np.abs(f)
+        # With a gap test (gtol > 0) the line search is trusted only above a margin over
+        # the rounding level of f: ill-conditioned problems evaluate f to about cond * eps,
+        # and there the gradient (and so the gap) is the better judge.
+        level = max(4.0 * np.finfo(float).eps, 1e-3 * gtol)
+        rounding = (-slope <= level * np.abs(f)) & ~extend
         small = small_step | rounding
         g_scale = np.abs(g).max(axis=-1) + np.finfo(float).tiny
         deficit = np.where(free, 0.0, g - mu[..., None])  # < 0: releasing helps
