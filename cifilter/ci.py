@@ -605,8 +605,7 @@ def covariance_intersection(xs, Ps, criterion="trace", omega=None):
         weights = FAST_OMEGA_RULES[omega](est)
         info["rule"] = omega
     else:
-        weights = check_weights(omega, est.count)
-        weights = np.broadcast_to(weights, est.batch_shape + (est.count,)).copy()
+        weights = check_weights(omega, est.count, batch_shape=est.batch_shape)
         info["rule"] = "fixed"
     if fused is None:
         assembled = weighted_fusion(est.x, est.L, weights, L_inv)

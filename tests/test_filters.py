@@ -229,9 +229,8 @@ def assert_bit_identical(kf, before):
      r"'optimal' needs the option\(s\) 'joint'"),
     ((np.zeros(2), np.eye(2)), {"method": "optimal", "joint": np.eye(4) + 0j}, TypeError,
      "joint must be real"),
-    pytest.param((np.zeros(2), np.eye(2)), {"omega": [[0.5, 0.5], [0.5, 0.5]]}, ValueError,
-                 "omega has shape", marks=pytest.mark.xfail(
-                     strict=True, reason="ci.py must pass batch_shape to check_weights")),
+    ((np.zeros(2), np.eye(2)), {"omega": [[0.5, 0.5], [0.5, 0.5]]}, ValueError,
+     "omega has shape"),
     ((np.zeros(2), np.eye(2)), {"omega": np.nan}, ValueError, "omega contains non-finite"),
 ])
 def test_failed_fusion_is_named_and_leaves_the_filter_bit_identical(other, options, error,
