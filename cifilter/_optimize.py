@@ -172,6 +172,8 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
 
         small_step = np.abs(d).max(axis=-1) < xtol
         slope = np.einsum("...i,...i->...", g, d)
+        # the rounding level of f: relative to |f|, or to 1 for objectives near zero
+        f_scale = np.maximum(np.abs(f), 1.0) if absolute_gap else np.abs(f)
         extend = np.zeros(shape, dtype=bool)
         if gtol > 0.0:
             # A step after which the derivative along its direction kept more than half of
@@ -184,7 +186,7 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
             # checked by the line search like any step: at the rounding level the
             # derivatives are noise and the extension could run to the boundary)
             extend = (active & (previous_t > 0.0)
-                      & (-previous_slope > 64.0 * np.finfo(float).eps * np.abs(f))
+                      & (-previous_slope > 64.0 * np.finfo(float).eps * f_scale)
                       & (now < 0.5 * previous_slope))
             d = np.where(extend[..., None], previous_d, d)
             slope = np.where(extend, now, slope)
@@ -197,7 +199,7 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         # the rounding level of f: ill-conditioned problems evaluate f to about cond * eps,
         # and there the gradient (and so the gap) is the better judge.
         level = max(4.0 * np.finfo(float).eps, 1e-3 * gtol)
-        rounding = (-slope <= level * np.abs(f)) & ~extend
+        rounding = (-slope <= level * f_scale) & ~extend
         small = small_step | rounding
         g_scale = np.abs(g).max(axis=-1) + np.finfo(float).tiny
         deficit = np.where(free, 0.0, g - mu[..., None])  # < 0: releasing helps
@@ -247,7 +249,7 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
                 further = np.where(slope > previous_slope,
                                    previous_t * slope / (previous_slope - slope), t_max)
             t = np.where(extend, np.clip(np.nan_to_num(further, nan=0.0), 0.0, t_max), t)
-        by_slope = (last | stuck) & ~extend if gtol > 0.0 else np.zeros(shape, dtype=bool)
+        by_slope = stuck & ~extend if gtol > 0.0 else np.zeros(shape, dtype=bool)
         if by_slope.any():
             # Where f is flat to its rounding level along d, its values cannot place the
             # step but its directional derivative can (the gradient stays accurate): a
@@ -279,8 +281,9 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         stepping = stepping & ~stalled
         finished |= stalled
         blocked = stepping & (t == t_max)
+        # (only a checked Newton step may be extended, not a Frank-Wolfe or unchecked one)
         previous_d = d
-        previous_t = np.where(stepping & ~blocked, t, 0.0)
+        previous_t = np.where(stepping & ~blocked & ~stuck & ~last, t, 0.0)
         previous_slope = slope
         new_w = np.where(stepping[..., None], w + t[..., None] * d, w)
         hit = blocked[..., None] & (ratio == t_max[..., None])

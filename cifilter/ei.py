@@ -588,7 +588,10 @@ def ellipsoidal_intersection(xa, Pa, xb, Pb, eps=DEFAULT_EPS, *, mutual_mean="si
     ValueError
         Mismatched dimensions or batch shapes, non-finite values, covariances that are
         not symmetric positive definite, ``eps < 0``, an unknown ``mutual_mean`` or
-        ``regularizer``.
+        ``regularizer``. :class:`~cifilter.IllConditionedError` (a ValueError) instead of
+        a covariance that is not finite and positive definite: under the conditioning
+        contract (input condition numbers up to 1e12) ``P`` is always positive definite
+        (it is assembled as ``F F^T`` with ``F`` nonsingular; see the method's page).
     TypeError
         Non-numeric input.
 

@@ -43,7 +43,11 @@ def naive_fusion(xs, Ps):
     ------
     ValueError
         Fewer than two estimates, bad shapes, non-finite values, covariances that are not
-        symmetric positive definite.
+        symmetric positive definite; :class:`~cifilter.IllConditionedError` (a ValueError)
+        where the fused information is numerically singular (only beyond the conditioning
+        contract). ``P`` is returned as ``sum_i K_i P_i K_i^T``, the exact error covariance
+        of the returned gains for independent errors, symmetric positive semidefinite by
+        construction.
 
     See Also
     --------

@@ -627,8 +627,10 @@ def pc_ellipsoidal_intersection(xa, Pa, xb, Pb, alpha=0.05, *, eps=DEFAULT_EPS,
     Raises
     ------
     ValueError
-        As :func:`ellipsoidal_intersection`, and ``alpha`` outside (0, 1), ``tol`` not in
-        (0, 1), ``max_iter < 1``.
+        As :func:`ellipsoidal_intersection` (including
+        :class:`~cifilter.IllConditionedError` rather than a covariance that is not
+        positive definite), and ``alpha`` outside (0, 1), ``tol`` not in (0, 1),
+        ``max_iter < 1``.
     TypeError
         Non-numeric input.
 

@@ -352,7 +352,7 @@ def test_inputs_are_not_mutated():
     (lambda: common_correlation_bound(np.ones((4, 3)), 2), ValueError, r"\(\.\.\., D, D\)"),
     (lambda: common_correlation_bound(np.triu(np.ones((4, 4))), 2), ValueError, "symmetric"),
     (lambda: common_correlation_bound(np.diag([1.0, 1, 0, 1]), 2), ValueError,
-     "diagonal block 1 of joint is not positive definite"),
+     "diagonal block 1 of joint is (not positive definite|too ill-conditioned.*singular)"),
     (lambda: is_rho_admissible(np.eye(4), 2, [0.5, 0.5, 0.5]), ValueError, r"\(\.\.\., 2\)"),
     (lambda: is_rho_admissible(np.eye(4), 2, 2.0), ValueError, r"\[0, 1\]"),
     (lambda: is_rho_admissible(np.eye(4), 2, 0.5, tol=-1.0), ValueError, "tol"),
