@@ -60,7 +60,16 @@ from typing import Any, Optional
 import numpy as np
 from scipy import linalg as sla
 
-from ._linalg import cho_inverse, cho_solve, cholesky, diagonalise_pair, symmetrize
+from ._linalg import (
+    IllConditionedError,
+    cho_inverse,
+    cho_solve,
+    cholesky,
+    condition_number,
+    diagonalise_pair,
+    ill_conditioned,
+    symmetrize,
+)
 from ._optimize import minimize_convex_interval, minimize_convex_simplex
 from ._partial_horizon import information_bound, partial_horizon_delta
 from ._riccati import (
@@ -71,7 +80,8 @@ from ._riccati import (
     check_steps_available,
     horizon_terms,
     propagated_bound,
-    riccati,
+    riccati_scaled,
+    unscale,
     update,
 )
 from ._validation import as_covariances, as_float_array, check_covariances, check_int
@@ -219,7 +229,33 @@ def _optimal_weights(Ps, terms, kind, W, rho=None):
         weights, info = ci_weights(cho_inverse(cholesky(S, "P_i^-1 + Gamma")), weight,
                                    method="simplex")
         iterations, converged, solver = info["iterations"], info["converged"], "simplex"
+    _check_weights(weights)
     return weights, {"iterations": iterations, "converged": converged, "solver": solver}
+
+
+def _solve(Ps, terms, kind, W, rho, horizons):
+    """:func:`_optimal_weights`; a matrix found singular on the way becomes an
+    IllConditionedError naming the horizon (never a NaN optimum)."""
+    try:
+        return _optimal_weights(Ps, terms, kind, W, rho)
+    except IllConditionedError:
+        raise
+    except ValueError as exc:
+        if "not positive definite" not in str(exc):
+            raise
+        shown = horizons if np.ndim(horizons) == 0 else f"in {np.asarray(horizons).tolist()}"
+        raise IllConditionedError(
+            f"at horizon {shown} the horizon terms are numerically singular ({exc}): the "
+            "propagated bound's condition number exceeds what float64 resolves (for an "
+            "unstable F it grows like the ratio of the two largest |eigenvalues| to the power "
+            "2 * horizon); ask for a shorter horizon") from None
+
+
+def _check_weights(weights):
+    """Never return a non-finite optimum (as converged or otherwise)."""
+    if not np.isfinite(weights).all():
+        raise ValueError("the horizon-optimal weights are not finite: the propagated bound "
+                         "is not representable in float64 for this model and horizon")
 
 
 def _optimal_partial(Ps, terms, kind, W, rho):
@@ -234,12 +270,17 @@ def _optimal_partial(Ps, terms, kind, W, rho):
     terms = broadcast_terms(terms, batch)
     weight = None if kind == "det" else np.eye(est.dim) if kind == "trace" else W
     delta, iterations, converged, gap = partial_horizon_delta(informations, terms, rho, weight)
+    _check_weights(delta)
     return delta, {"iterations": iterations, "converged": converged, "solver": "simplex",
                    "gap": gap}
 
 
 def _fused_bound(Ps, terms, weights, rho=None):
-    """The propagated bound for CI weights, or for partial CI's ``delta`` given ``rho``."""
+    """The propagated bound for CI weights, or partial CI's ``delta`` given ``rho``, / 2^e.
+
+    Multiply by ``2^terms.exponent`` with :func:`cifilter._riccati.unscale` (which raises if
+    the product overflows).
+    """
     if rho is not None:
         informations = cho_inverse(as_covariances(Ps, name="Ps").L)
         return information_bound(informations, terms, _partial_weights(weights, rho))
@@ -319,7 +360,9 @@ def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
         raise ValueError(f"P must hold square matrices (..., n, n), got shape {P.shape}")
     P, _ = check_covariances(P, "P")
     model = as_model(F, Q, H, R, G, P.shape[-1], steps=horizon if horizon else None)
-    bounds = riccati(P, model, horizon)
+    scaled = riccati_scaled(P, model, horizon)
+    steps = range(horizon + 1) if history else [horizon]
+    bounds = [_checked_bound(*scaled[k], _at(k)) for k in steps]
     if not history:
         return bounds[-1]
     batch = np.broadcast_shapes(*(b.shape[:-2] for b in bounds))
@@ -374,22 +417,82 @@ class HorizonOmega:
                 f"horizon={self.info.get('horizon')})")
 
 
+def _at(horizons, weights=None):
+    """``where(index)`` for error messages; the last batch axis runs over ``horizons`` if an
+    array is given, and the weights found there (..., N) are quoted (they are well defined)."""
+
+    def where(index):
+        index = tuple(int(i) for i in index)
+        if np.ndim(horizons):
+            text, batch_index = f"at horizon {horizons[index[-1]]}", index[:-1]
+        else:
+            text, batch_index = f"at horizon {horizons}", index
+        if batch_index:
+            text += f" (batch index {batch_index})"
+        if weights is not None:
+            found = np.round(np.asarray(weights)[index], 6).tolist()
+            text += f", where the optimal weights {found} are still well defined,"
+        return text
+
+    return where
+
+
+def _value(P_hat, exponent, kind, W, where):
+    """The criterion of ``2^e P_hat`` without forming it (ValueError if not representable).
+
+    ``det`` is ``exp(log det)`` from a Cholesky factor of ``P_hat`` plus ``n e ln 2``.
+    """
+    exponent = np.broadcast_to(exponent, P_hat.shape[:-2])
+    if kind == "det":
+        n = P_hat.shape[-1]
+        L = cholesky(P_hat, "propagated bound")
+        log_det = (2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
+                   + n * np.log(2.0) * exponent)
+        bad = (log_det > np.log(np.finfo(float).max)) | (log_det < np.log(np.finfo(float).tiny))
+        if bad.any():
+            index = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
+            raise ValueError(
+                f"det of the propagated bound {where(index)} is not representable in float64: "
+                f"log det = {float(log_det[index]):.6g}; ask for a shorter horizon")
+        return np.exp(log_det)
+    value = _criterion_value(P_hat, kind, W)
+    return unscale(value[..., None, None], exponent, "the criterion of the propagated bound",
+                   where)[..., 0, 0]
+
+
+def _checked_bound(P_hat, exponent, where):
+    """``2^e P_hat``: finite (ValueError otherwise) and positive definite
+    (IllConditionedError otherwise)."""
+    P = unscale(P_hat, exponent, "the propagated bound", where)
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        cond = condition_number(P)
+        index = np.unravel_index(int(np.argmax(cond.ravel())), cond.shape)
+        raise ill_conditioned(f"the propagated bound {where(index)}", cond[index],
+                              "is not numerically positive definite") from None
+    return P
+
+
 def _choose(Ps, model, horizon, criterion, n, rho=None):
     """Horizon-optimal weights, value and bound, and the recursive approach's for comparison."""
     kind, W = _parse_criterion(criterion, n)
     check_steps_available(model, horizon)
     terms_list = horizon_terms(model, horizon, n, collect=sorted({0, horizon}))
     start, terms = terms_list[0], terms_list[-1]
-    weights, info = _optimal_weights(Ps, terms, kind, W, rho)
-    recursive, _ = _optimal_weights(Ps, start, kind, W, rho)
-    P = _fused_bound(Ps, terms, weights, rho)
+    weights, info = _solve(Ps, terms, kind, W, rho, horizon)
+    recursive, _ = _solve(Ps, start, kind, W, rho, 0)
+    P_hat = _fused_bound(Ps, terms, weights, rho)
+    where = _at(horizon, np.broadcast_to(weights, P_hat.shape[:-2] + weights.shape[-1:]))
+    P = _checked_bound(P_hat, terms.exponent, where)
+    value = _value(P_hat, terms.exponent, kind, W, where)
     P_recursive = _fused_bound(Ps, terms, recursive, rho)
     info.update(horizon=horizon, criterion=kind, omega_recursive=recursive,
-                value_recursive=_criterion_value(P_recursive, kind, W))
+                value_recursive=_value(P_recursive, terms.exponent, kind, W, _at(horizon)))
     if rho is not None:
         info.update(rho=np.broadcast_to(rho, weights.shape).copy(),
                     weights=_partial_weights(weights, rho))
-    return weights, _criterion_value(P, kind, W), P, info
+    return weights, value, P, info
 
 
 def _as_rho(rho, count, batch_shape):
@@ -936,15 +1039,20 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
                                                      collect=everything)))
     terms = _stack_terms([collected[h] for h in horizons])
     Ps_k = Ps[..., None, :, :, :]
-    weights, _ = _optimal_weights(Ps_k, terms, kind, W, rho_k)
-    recursive_w, _ = _optimal_weights(Ps, collected[0], kind, W, rho)
-    P_batch = _fused_bound(Ps_k, terms, weights, rho_k)
-    P_recursive = _fused_bound(Ps_k, terms, recursive_w[..., None, :], rho_k)
+    weights, _ = _solve(Ps_k, terms, kind, W, rho_k, horizons)
+    recursive_w, _ = _solve(Ps, collected[0], kind, W, rho, 0)
+    P_hat = _fused_bound(Ps_k, terms, weights, rho_k)
+    where = _at(horizons, np.broadcast_to(weights, P_hat.shape[:-2] + weights.shape[-1:]))
+    P_batch = _checked_bound(P_hat, terms.exponent, where)
+    batch_value = _value(P_hat, terms.exponent, kind, W, where)
+    P_hat = _fused_bound(Ps_k, terms, recursive_w[..., None, :], rho_k)
+    P_recursive = _checked_bound(P_hat, terms.exponent, _at(horizons))
+    recursive_value = _value(P_hat, terms.exponent, kind, W, _at(horizons))
     batch_shape = P_batch.shape[:-3]
     omega_limit = np.full(batch_shape, np.nan)
     if limit:
         tail = _stack_terms([collected[h] for h in _LIMIT_HORIZONS])
-        w_tail, _ = _optimal_weights(Ps_k, tail, kind, W, rho_k)
+        w_tail, _ = _solve(Ps_k, tail, kind, W, rho_k, _LIMIT_HORIZONS)
         first, last = w_tail[..., 0, 0], w_tail[..., 1, 0]
         omega_limit = np.where(np.abs(first - last) < 1e-8, last, np.nan)
     steady_P = steady_value = None
@@ -960,8 +1068,8 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
     return HorizonStudy(
         horizons=horizons,
         omega=weights[..., 0],
-        batch=_criterion_value(P_batch, kind, W),
-        recursive=_criterion_value(P_recursive, kind, W),
+        batch=batch_value,
+        recursive=recursive_value,
         omega_recursive=np.broadcast_to(omega_recursive, batch_shape).copy(),
         criterion=kind,
         P_batch=P_batch,
