@@ -362,7 +362,8 @@ def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
     model = as_model(F, Q, H, R, G, P.shape[-1], steps=horizon if horizon else None)
     scaled = riccati_scaled(P, model, horizon)
     steps = range(horizon + 1) if history else [horizon]
-    bounds = [_checked_bound(*scaled[k], _at(k)) for k in steps]
+    bounds = [_checked_bound(*scaled[k], _at(k if k == horizon else f"{k} of {horizon}"))
+              for k in steps]
     if not history:
         return bounds[-1]
     batch = np.broadcast_shapes(*(b.shape[:-2] for b in bounds))
