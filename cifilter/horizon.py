@@ -51,6 +51,20 @@ separate log-scale, so that the omega-dependent part of the bound, which decays 
 closed loop's spectral radius to the power ``2 kappa``, is never lost to rounding against
 ``P_c``: the optimum stays well defined at horizons where the criterion values themselves
 agree to machine precision.
+
+Overflow and conditioning (the conditioning contract)
+-----------------------------------------------------
+For an unstable model the bound grows like the spectral radius of ``F`` to the power
+``2 kappa``. The terms are therefore carried as ``P_kappa = 2^e (P_c + exp(2 s) Psi S^-1
+Psi^T)`` with an exact power-of-two exponent ``e`` (the recursion runs with ``G Q G^T`` and
+``R`` scaled by ``2^-e``; nothing is rescaled below ``2^200``), the weights are optimised on
+the scaled terms, and only the returned bound and criterion are multiplied out. A bound or a
+criterion that float64 cannot represent raises a ``ValueError`` naming the horizon and the
+quantity (and quoting the optimal weights, which stay well defined); a bound or horizon
+term that is not numerically positive definite raises ``IllConditionedError`` (from
+``cifilter._linalg``, a ``ValueError``). Nothing returns NaN, and no non-finite optimum is
+reported as converged. Derivation and examples: ``docs/methods/horizon.rst``, "Numerical
+formulation".
 """
 
 import numbers
@@ -331,9 +345,20 @@ def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
     ValueError
         Bad shapes, non-finite values, ``P`` or ``R`` not symmetric positive definite, ``Q``
         not positive semidefinite, ``H`` given without ``R`` (or vice versa), a sequence of
-        the wrong length, a negative horizon.
+        the wrong length, a negative horizon; a propagated bound that float64 cannot hold
+        (an unstable ``F`` and a long horizon: the message names the horizon, with
+        ``history=True`` the first that overflows, and the size of the bound).
+    IllConditionedError
+        A propagated bound that is finite but not numerically positive definite.
     TypeError
         Non-numeric input or a non-integer horizon.
+
+    Notes
+    -----
+    The recursion runs on ``P / 2^e`` with ``G Q G^T`` and ``R`` scaled alike (``e`` an
+    integer, changed only when the largest entry passes ``2^200``; the gains are scale
+    invariant), so intermediate bounds never overflow; the returned bound is finite,
+    symmetric and positive definite.
 
     References
     ----------
@@ -549,7 +574,11 @@ def optimal_omega(PA, PB, F, Q, H, R, horizon, criterion="trace", G=None, *, rho
     ------
     ValueError
         Bad covariances, model or criterion (see :func:`propagate_bound`); a propagated bound
-        that is singular under the ``"det"`` criterion.
+        or criterion value that float64 cannot hold at this horizon (the message names the
+        horizon, the quantity and the optimal weights, which remain well defined).
+    IllConditionedError
+        The propagated bound, or a horizon term the ``"det"`` criterion needs, is not
+        numerically positive definite (its condition number exceeds what float64 resolves).
     TypeError
         Non-numeric input or a non-integer horizon.
 
@@ -656,7 +685,10 @@ def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None, *, rho=N
     Raises
     ------
     ValueError
-        Fewer than two estimates, bad covariances, model or criterion.
+        Fewer than two estimates, bad covariances, model or criterion; a propagated bound or
+        criterion value that float64 cannot hold (as :func:`optimal_omega`).
+    IllConditionedError
+        As :func:`optimal_omega`.
     TypeError
         Non-numeric input or a non-integer horizon.
 
@@ -742,13 +774,17 @@ def steady_state_covariance(F, Q, H, R, G=None):
     Returns
     -------
     ndarray, shape (..., n, n)
-        The steady posterior covariance (symmetric).
+        The steady posterior covariance (symmetric, finite, positive semidefinite; singular
+        only along noise-free modes).
 
     Raises
     ------
     ValueError
         Bad shapes or values; no stabilising solution (for example an undetectable pair
         ``(F, H)``, or ``F`` not stable without measurements).
+    IllConditionedError
+        A solution that is not finite or not positive semidefinite beyond rounding (the
+        solvers' result is checked, never returned as NaN).
     TypeError
         Non-numeric input.
 
@@ -795,7 +831,18 @@ def steady_state_covariance(F, Q, H, R, G=None):
             raise ValueError(f"the Riccati equation has no stabilising solution ({exc}); "
                              "is (F, H) detectable?") from None
         out[index] = update(symmetrize(M), (H_i, R_i))[0]
-    return symmetrize(out)
+    out = symmetrize(out)
+    finite = np.isfinite(out).all(axis=(-2, -1))
+    if not finite.all():
+        raise ill_conditioned("the steady-state covariance", np.inf, "is not finite")
+    # A steady state may be singular (noise-free stable modes); negative beyond rounding it
+    # may not.
+    eigenvalues = np.linalg.eigvalsh(out)
+    tolerance = 64.0 * n * np.finfo(float).eps * np.abs(eigenvalues).max(axis=-1)
+    if np.any(eigenvalues[..., 0] < -tolerance):
+        raise ill_conditioned("the steady-state covariance", condition_number(out),
+                              "is not numerically positive semidefinite")
+    return out
 
 
 @dataclass(frozen=True, repr=False)
@@ -983,7 +1030,10 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
     Raises
     ------
     ValueError
-        Bad covariances, model, criterion or horizons.
+        Bad covariances, model, criterion or horizons; a bound or criterion value that float64
+        cannot hold at one of the horizons (named in the message).
+    IllConditionedError
+        As :func:`optimal_omega`.
     TypeError
         Non-numeric input.
 
