@@ -132,31 +132,39 @@ def _pair_weights(S, terms, kind, W):
     V = terms.Psi @ T  # the bound is P_c + exp(2 s) V diag(d) V^T, d = 1 / (1 + omega a)
     a = (mu - 1.0).reshape(size, n)
     if kind == "det":
+        # The determinant needs a Cholesky factor of Z = P_c + exp(2 s) Psi S^-1 Psi^T. S^-1
+        # is factored directly at every omega: rebuilt from the simultaneous diagonalisation,
+        # T diag(d) T^T loses the small eigenvalues of S^-1 when S_A and S_B are
+        # ill-conditioned in different directions (Z then came out indefinite).
         P_c = terms.P_c.reshape(size, n, n)
-        Vf = V.reshape(size, n, n)
+        Psi = terms.Psi.reshape(size, n, n)
+        S_A = S[..., 0, :, :].reshape(size, n, n)
+        S_B = S[..., 1, :, :].reshape(size, n, n)
+        D = symmetrize(S_A - S_B)
         weight = np.exp(2.0 * terms.log_scale).reshape(size)
 
         def parts(omega, index):
-            d = 1.0 / (1.0 + omega[:, None] * a[index])
+            S_w = symmetrize(S_B[index] + omega[:, None, None] * D[index])
+            X = cho_inverse(cholesky(S_w, "fused information"))
             Z = P_c[index] + weight[index, None, None] * (
-                (Vf[index] * d[:, None, :]) @ np.swapaxes(Vf[index], -1, -2))
+                Psi[index] @ X @ np.swapaxes(Psi[index], -1, -2))
             LZ = cholesky(symmetrize(Z), "propagated bound")
-            X = np.swapaxes(Vf[index], -1, -2) @ cho_solve(LZ, Vf[index])
-            return d, X
+            C = np.swapaxes(Psi[index], -1, -2) @ cho_solve(LZ, Psi[index])
+            return X, C
 
         def derivatives(omega, index):
-            # f = log det Z; f' and f'' divided by exp(2 s) (their sign and root are kept).
-            d, X = parts(omega, index)
-            ad2 = a[index] * d**2
-            diagonal = np.diagonal(X, axis1=-2, axis2=-1)
-            g = -(diagonal * ad2).sum(axis=-1)
-            h = 2.0 * (diagonal * a[index] ** 2 * d**3).sum(axis=-1) - weight[index] * np.einsum(
-                "ik,ikl,il,ilk->i", ad2, X, ad2, X)
+            # f = log det Z; f' and f'' divided by exp(2 s) (their sign and root are kept):
+            # with M = C X D X, f' = -tr(M), f'' = 2 tr(M D X) - exp(2 s) tr(M M).
+            X, C = parts(omega, index)
+            M = C @ X @ D[index] @ X
+            g = -np.trace(M, axis1=-2, axis2=-1)
+            h = 2.0 * np.einsum("iab,ibc,ica->i", M, D[index], X) - weight[index] * np.einsum(
+                "iab,iba->i", M, M)
             return g, h
 
         everything = np.arange(size)
         ends = [parts(np.full(size, w), everything) for w in (0.0, 1.0)]
-        scale = sum((np.diagonal(X, axis1=-2, axis2=-1) * d).sum(axis=-1) for d, X in ends)
+        scale = sum(np.einsum("iab,iba->i", C, X) for X, C in ends)
     else:
         weight_matrix = np.eye(n) if kind == "trace" else W
         c = np.einsum("...ik,...ij,...jk->...k", V, weight_matrix, V)
