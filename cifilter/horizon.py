@@ -156,10 +156,12 @@ def _pair_weights(S, terms, kind, W):
             # f = log det Z; f' and f'' divided by exp(2 s) (their sign and root are kept):
             # with M = C X D X, f' = -tr(M), f'' = 2 tr(M D X) - exp(2 s) tr(M M).
             X, C = parts(omega, index)
-            M = C @ X @ D[index] @ X
+            XDX = X @ D[index] @ X
+            M = C @ XDX
             g = -np.trace(M, axis1=-2, axis2=-1)
-            h = 2.0 * np.einsum("iab,ibc,ica->i", M, D[index], X) - weight[index] * np.einsum(
-                "iab,iba->i", M, M)
+            # traces of products as sums of elementwise products (no einsum over 3 operands)
+            h = 2.0 * ((M @ D[index]) * np.swapaxes(X, -1, -2)).sum(axis=(-2, -1)) - weight[
+                index] * (M * np.swapaxes(M, -1, -2)).sum(axis=(-2, -1))
             return g, h
 
         everything = np.arange(size)
