@@ -14,7 +14,8 @@ from ._linalg import cho_solve, cholesky, solve_lower, symmetrize
 from ._validation import as_float_array, as_matrix, check_covariances, check_psd
 
 __all__ = ["Model", "Terms", "as_matrix", "as_model", "broadcast_terms", "check_steps_available",
-           "horizon_terms", "predict", "propagated_bound", "riccati", "update"]
+           "horizon_terms", "overflow_error", "predict", "propagated_bound", "rescale",
+           "riccati", "riccati_scaled", "unscale", "update"]
 
 
 # --------------------------------------------------------------------------- the model
@@ -93,10 +94,81 @@ def check_steps_available(model, horizon):
                          f"{horizon}")
 
 
+# --------------------------------------------------------------------------- scaling
+# Bounds are carried as ``P = 2^e P_hat`` with an integer exponent ``e`` per batch item, so
+# that an unstable model's bound, which grows like the spectral radius to the power 2 k,
+# never overflows inside the recursion. Powers of two make the rescaling exact; it is done
+# only when the largest entry passes 2^RESCALE_LOG2, so moderate problems are computed
+# exactly as without it. The recursion is homogeneous: with P scaled by 2^-e, the noise
+# G Q G^T and R are scaled alike and the gains are unchanged.
+RESCALE_LOG2 = 200
+# Largest binary exponent x of a float64 m 2^x (m in [0.5, 1)).
+_MAX_EXPONENT = np.finfo(float).maxexp  # 1024
+_LN2 = float(np.log(2.0))
+
+
+def _exponent_of_max(A, axes=(-2, -1)):
+    """Binary exponent x of max |A| (max |A| = m 2^x, m in [0.5, 1)); -inf for zero."""
+    size = np.abs(A).max(axis=axes)
+    _, exponent = np.frexp(size)
+    return np.where(size > 0, exponent.astype(float), -np.inf)
+
+
+def rescale(P_hat, e):
+    """Exact power-of-two rescaling of ``P_hat`` where its largest entry passes 2^RESCALE_LOG2."""
+    x = _exponent_of_max(P_hat)
+    d = np.where(x > RESCALE_LOG2, x, 0.0).astype(np.int64)
+    if not d.any():
+        return P_hat, e
+    return np.ldexp(P_hat, -d[..., None, None]), e + d
+
+
+def unscale(P_hat, e, what, where):
+    """``2^e P_hat``, or a ValueError naming ``what`` and ``where`` if it is not representable.
+
+    ``where`` is a function of the batch index of the first failing item that says where
+    (for instance ``"at horizon 5000"``).
+    """
+    e = np.broadcast_to(e, P_hat.shape[:-2])
+    if not e.any():
+        return P_hat
+    top = _exponent_of_max(P_hat) + e
+    if np.any(top > _MAX_EXPONENT):
+        index = np.unravel_index(int(np.argmax(top.ravel())), top.shape)
+        raise overflow_error(what, float(top[index]), where(index))
+    return np.ldexp(P_hat, e[..., None, None])
+
+
+def overflow_error(what, log2_size, where):
+    """The ValueError for ``what`` of size about ``2^log2_size`` that float64 cannot hold."""
+    return ValueError(
+        f"{what} {where} overflows float64: its largest entry is about "
+        f"1e{log2_size * np.log10(2.0):.0f}, beyond the largest float {np.finfo(float).max:.3g} "
+        "(an unstable model: the bound grows like the spectral radius of F to the power "
+        "2 * horizon); ask for a shorter horizon"
+    )
+
+
+def _check_finite(step, horizon, **arrays):
+    for name, A in arrays.items():
+        if not np.isfinite(A).all():
+            raise ValueError(
+                f"{name} overflowed at step {step} of the horizon {horizon} (it is not finite "
+                "even with the bound carried on a power-of-two scale); the model is too "
+                "unstable or badly scaled for this horizon"
+            )
+
+
 # --------------------------------------------------------------------------- Riccati steps
-def predict(P, model):
-    """Eq. (16): F P F^T + G Q G^T."""
-    return symmetrize(model.F @ P @ np.swapaxes(model.F, -1, -2) + model.noise)
+def predict(P, model, e=None):
+    """Eq. (16): F P F^T + G Q G^T (with P = 2^e P_hat: for P_hat, noise scaled by 2^-e)."""
+    noise = model.noise if e is None else np.ldexp(model.noise, -e[..., None, None])
+    return symmetrize(model.F @ P @ np.swapaxes(model.F, -1, -2) + noise)
+
+
+def _scaled(measurement, e):
+    H, R = measurement
+    return H, np.ldexp(R, -e[..., None, None])
 
 
 def update(M, measurement):
@@ -115,23 +187,65 @@ def update(M, measurement):
     return symmetrize(P), A, L, H
 
 
-def riccati(P, model, horizon):
-    """Bounds after 0, 1, ..., horizon steps (list)."""
-    bounds = [P]
-    for step in range(horizon):
-        M = predict(bounds[-1], model)
-        measurement = model.measurement(step)
-        bounds.append(M if measurement is None else update(M, measurement)[0])
+def riccati_scaled(P, model, horizon):
+    """Bounds after 0, 1, ..., horizon steps as a list of ``(P_hat, e)``, ``P = 2^e P_hat``.
+
+    Raises ValueError if a bound is not finite even on this scale (naming the step).
+    """
+    e = np.zeros(P.shape[:-2], dtype=np.int64)
+    bounds = [(P, e)]
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        for step in range(horizon):
+            P_hat, e = bounds[-1]
+            e = np.broadcast_to(e, np.broadcast_shapes(e.shape, model.F.shape[:-2],
+                                                       model.noise.shape[:-2]))
+            M = predict(P_hat, model, e)
+            measurement = model.measurement(step)
+            if measurement is not None:
+                e = np.broadcast_to(e, np.broadcast_shapes(e.shape, *(m.shape[:-2]
+                                                                   for m in measurement)))
+                M = update(M, _scaled(measurement, e))[0]
+            _check_finite(step + 1, horizon, bound=M)
+            bounds.append(rescale(M, e))
     return bounds
 
 
-class Terms(NamedTuple):
-    """The horizon terms of (*): P_kappa(P_0) = P_c + exp(2 s) Psi (P_0^-1 + Gamma)^-1 Psi^T."""
+def riccati(P, model, horizon):
+    """Bounds after 0, 1, ..., horizon steps (list); ValueError if one overflows float64."""
+    return [unscale(P_hat, e, "the propagated bound", _after(step, horizon))
+            for step, (P_hat, e) in enumerate(riccati_scaled(P, model, horizon))]
 
-    P_c: np.ndarray  # (..., n, n)
+
+def _after(step, horizon):
+    def where(index):
+        at = f" (batch index {tuple(int(i) for i in index)})" if index else ""
+        return f"after step {step} of the horizon {horizon}{at}"
+    return where
+
+
+class Terms(NamedTuple):
+    """The horizon terms of (*), on a power-of-two scale:
+
+    P_kappa(P_0) = 2^e (P_c + exp(2 s) Psi (P_0^-1 + Gamma)^-1 Psi^T).
+    """
+
+    P_c: np.ndarray  # (..., n, n), the bound for a known initial state, divided by 2^e
     Psi: np.ndarray  # (..., n, n), normalised to max |entry| = 1 (or 0)
-    log_scale: np.ndarray  # (...), s
-    Gamma: np.ndarray  # (..., n, n)
+    log_scale: np.ndarray  # (...), s: exp(2 s) is at most 2^(2 RESCALE_LOG2)
+    Gamma: np.ndarray  # (..., n, n), not scaled
+    exponent: np.ndarray  # (...), e (integers)
+
+
+def _record(P_c, Psi, s, Gamma, e):
+    """Terms with the relative scale s - e ln2 / 2; a large one moves into the exponent."""
+    relative = s - 0.5 * _LN2 * e
+    shift = np.where(relative > RESCALE_LOG2 * _LN2 / 2.0,
+                     np.ceil(2.0 * relative / _LN2), 0.0).astype(np.int64)
+    if shift.any():
+        P_c = np.ldexp(P_c, -shift[..., None, None])
+        e = e + shift
+        relative = s - 0.5 * _LN2 * e
+    return Terms(P_c, Psi, relative, Gamma, e)
 
 
 def horizon_terms(model, horizon, n, collect=None):
@@ -141,45 +255,66 @@ def horizon_terms(model, horizon, n, collect=None):
     the last. The information about the initial state is ``Gamma = sum_j B_j^T B_j`` with
     ``B_j = L_S^-1 H F Psi_{j-1}`` (the innovations of the filter started at P = 0 depend on
     the initial state through ``H F Psi_{j-1}`` and have covariance ``S_j``).
+
+    ``P_c`` is carried as ``2^e P_c_hat`` (noise and ``R`` scaled by ``2^-e`` in the
+    recursion, exact and gain-preserving) and ``Psi`` as ``exp(s) Psi_hat``, so neither
+    overflows for unstable models; ValueError names the step if ``Gamma`` (which is not
+    scaled) or a scaled term still overflows.
     """
     batch = np.broadcast_shapes(model.F.shape[:-2], model.noise.shape[:-2])
     P_c = np.zeros(batch + (n, n))
     Psi = np.broadcast_to(np.eye(n), batch + (n, n)).copy()
-    log_scale = np.zeros(batch)
+    log_scale = np.zeros(batch)  # s of Psi = exp(s) Psi_hat (absolute)
+    e = np.zeros(batch, dtype=np.int64)  # P_c = 2^e P_c_hat
     Gamma = np.zeros(batch + (n, n))
     wanted = [horizon] if collect is None else list(collect)
     found = []
-    for step in range(horizon + 1):
-        if step in wanted:
-            found.append(Terms(P_c, Psi, log_scale, Gamma))
-        if step == horizon:
-            break
-        M = predict(P_c, model)
-        Psi = model.F @ Psi
-        measurement = model.measurement(step)
-        if measurement is not None:
-            P_c, A, L, H = update(M, measurement)
-            B = solve_lower(L, H @ Psi)
-            Gamma = symmetrize(Gamma + np.exp(2.0 * log_scale)[..., None, None]
-                               * (np.swapaxes(B, -1, -2) @ B))
-            Psi = A @ Psi
-        else:
-            P_c = M
-        # Keep Psi of order one; its size lives in log_scale (no underflow at long horizons).
-        size = np.abs(Psi).max(axis=(-2, -1))
-        size = np.where(size > 0, size, 1.0)
-        Psi = Psi / size[..., None, None]
-        log_scale = log_scale + np.log(size)
-        shapes = (P_c.shape[:-2], Gamma.shape[:-2], Psi.shape[:-2], log_scale.shape)
-        if any(shape != batch for shape in shapes):  # a batched H or R widened the batch
-            batch = np.broadcast_shapes(batch, *shapes)
-            P_c, Gamma, Psi = (np.broadcast_to(M, batch + (n, n)) for M in (P_c, Gamma, Psi))
-            log_scale = np.broadcast_to(log_scale, batch)
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        for step in range(horizon + 1):
+            if step in wanted:
+                found.append(_record(P_c, Psi, log_scale, Gamma, e))
+            if step == horizon:
+                break
+            M = predict(P_c, model, e)
+            Psi = model.F @ Psi
+            measurement = model.measurement(step)
+            if measurement is not None:
+                widened = np.broadcast_shapes(e.shape, *(m.shape[:-2] for m in measurement))
+                e = np.broadcast_to(e, widened)
+                P_c, A, L, H = update(M, _scaled(measurement, e))
+                B = solve_lower(L, H @ Psi)
+                BtB = np.swapaxes(B, -1, -2) @ B
+                # Gamma is not scaled: the whitening by L = 2^(-e/2) L_true costs 2^-e.
+                weight = np.exp(2.0 * log_scale - _LN2 * e)[..., None, None]
+                Gamma = symmetrize(Gamma + np.where(BtB == 0.0, 0.0, weight * BtB))
+                Psi = A @ Psi
+            else:
+                P_c = M
+            # Keep Psi of order one; its size lives in log_scale (no underflow at long
+            # horizons), and P_c below 2^RESCALE_LOG2 (its size lives in e).
+            size = np.abs(Psi).max(axis=(-2, -1))
+            size = np.where(size > 0, size, 1.0)
+            Psi = Psi / size[..., None, None]
+            log_scale = log_scale + np.log(size)
+            P_c, e = rescale(P_c, e)
+            _check_finite(step + 1, horizon, **{"the bound P_c": P_c,
+                                                "the information Gamma": Gamma,
+                                                "the transition Psi": Psi})
+            shapes = (P_c.shape[:-2], Gamma.shape[:-2], Psi.shape[:-2], log_scale.shape,
+                      e.shape)
+            if any(shape != batch for shape in shapes):  # a batched H or R widened the batch
+                batch = np.broadcast_shapes(batch, *shapes)
+                P_c, Gamma, Psi = (np.broadcast_to(M, batch + (n, n))
+                                   for M in (P_c, Gamma, Psi))
+                log_scale = np.broadcast_to(log_scale, batch)
+                e = np.broadcast_to(e, batch)
     return found if collect is not None else found[0]
 
 
 def propagated_bound(terms, S_inverse):
-    """(*) for an initial information ``S - Gamma``: P_c + exp(2 s) Psi S^-1 Psi^T."""
+    """(*) for an initial information ``S - Gamma``, divided by ``2^e``:
+    ``P_c + exp(2 s) Psi S^-1 Psi^T`` (multiply by ``2^terms.exponent`` with :func:`unscale`).
+    """
     weight = np.exp(2.0 * terms.log_scale)[..., None, None]
     return symmetrize(terms.P_c + weight * (terms.Psi @ S_inverse
                                             @ np.swapaxes(terms.Psi, -1, -2)))
@@ -189,4 +324,5 @@ def broadcast_terms(terms, batch):
     n = terms.P_c.shape[-1]
     return Terms(*(np.broadcast_to(t, batch + (n, n)) for t in terms[:2]),
                   np.broadcast_to(terms.log_scale, batch),
-                  np.broadcast_to(terms.Gamma, batch + (n, n)))
+                  np.broadcast_to(terms.Gamma, batch + (n, n)),
+                  np.broadcast_to(terms.exponent, batch))

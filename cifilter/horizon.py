@@ -51,6 +51,20 @@ separate log-scale, so that the omega-dependent part of the bound, which decays 
 closed loop's spectral radius to the power ``2 kappa``, is never lost to rounding against
 ``P_c``: the optimum stays well defined at horizons where the criterion values themselves
 agree to machine precision.
+
+Overflow and conditioning (the conditioning contract)
+-----------------------------------------------------
+For an unstable model the bound grows like the spectral radius of ``F`` to the power
+``2 kappa``. The terms are therefore carried as ``P_kappa = 2^e (P_c + exp(2 s) Psi S^-1
+Psi^T)`` with an exact power-of-two exponent ``e`` (the recursion runs with ``G Q G^T`` and
+``R`` scaled by ``2^-e``; nothing is rescaled below ``2^200``), the weights are optimised on
+the scaled terms, and only the returned bound and criterion are multiplied out. A bound or a
+criterion that float64 cannot represent raises a ``ValueError`` naming the horizon and the
+quantity (and quoting the optimal weights, which stay well defined); a bound or horizon
+term that is not numerically positive definite raises ``IllConditionedError`` (from
+``cifilter._linalg``, a ``ValueError``). Nothing returns NaN, and no non-finite optimum is
+reported as converged. Derivation and examples: ``docs/methods/horizon.rst``, "Numerical
+formulation".
 """
 
 import numbers
@@ -60,7 +74,16 @@ from typing import Any, Optional
 import numpy as np
 from scipy import linalg as sla
 
-from ._linalg import cho_inverse, cho_solve, cholesky, diagonalise_pair, symmetrize
+from ._linalg import (
+    IllConditionedError,
+    cho_inverse,
+    cho_solve,
+    cholesky,
+    condition_number,
+    diagonalise_pair,
+    ill_conditioned,
+    symmetrize,
+)
 from ._optimize import minimize_convex_interval, minimize_convex_simplex
 from ._partial_horizon import information_bound, partial_horizon_delta
 from ._riccati import (
@@ -71,7 +94,8 @@ from ._riccati import (
     check_steps_available,
     horizon_terms,
     propagated_bound,
-    riccati,
+    riccati_scaled,
+    unscale,
     update,
 )
 from ._validation import as_covariances, as_float_array, check_covariances, check_int
@@ -108,31 +132,41 @@ def _pair_weights(S, terms, kind, W):
     V = terms.Psi @ T  # the bound is P_c + exp(2 s) V diag(d) V^T, d = 1 / (1 + omega a)
     a = (mu - 1.0).reshape(size, n)
     if kind == "det":
+        # The determinant needs a Cholesky factor of Z = P_c + exp(2 s) Psi S^-1 Psi^T. S^-1
+        # is factored directly at every omega: rebuilt from the simultaneous diagonalisation,
+        # T diag(d) T^T loses the small eigenvalues of S^-1 when S_A and S_B are
+        # ill-conditioned in different directions (Z then came out indefinite).
         P_c = terms.P_c.reshape(size, n, n)
-        Vf = V.reshape(size, n, n)
+        Psi = terms.Psi.reshape(size, n, n)
+        S_A = S[..., 0, :, :].reshape(size, n, n)
+        S_B = S[..., 1, :, :].reshape(size, n, n)
+        D = symmetrize(S_A - S_B)
         weight = np.exp(2.0 * terms.log_scale).reshape(size)
 
         def parts(omega, index):
-            d = 1.0 / (1.0 + omega[:, None] * a[index])
+            S_w = symmetrize(S_B[index] + omega[:, None, None] * D[index])
+            X = cho_inverse(cholesky(S_w, "fused information"))
             Z = P_c[index] + weight[index, None, None] * (
-                (Vf[index] * d[:, None, :]) @ np.swapaxes(Vf[index], -1, -2))
+                Psi[index] @ X @ np.swapaxes(Psi[index], -1, -2))
             LZ = cholesky(symmetrize(Z), "propagated bound")
-            X = np.swapaxes(Vf[index], -1, -2) @ cho_solve(LZ, Vf[index])
-            return d, X
+            C = np.swapaxes(Psi[index], -1, -2) @ cho_solve(LZ, Psi[index])
+            return X, C
 
         def derivatives(omega, index):
-            # f = log det Z; f' and f'' divided by exp(2 s) (their sign and root are kept).
-            d, X = parts(omega, index)
-            ad2 = a[index] * d**2
-            diagonal = np.diagonal(X, axis1=-2, axis2=-1)
-            g = -(diagonal * ad2).sum(axis=-1)
-            h = 2.0 * (diagonal * a[index] ** 2 * d**3).sum(axis=-1) - weight[index] * np.einsum(
-                "ik,ikl,il,ilk->i", ad2, X, ad2, X)
+            # f = log det Z; f' and f'' divided by exp(2 s) (their sign and root are kept):
+            # with M = C X D X, f' = -tr(M), f'' = 2 tr(M D X) - exp(2 s) tr(M M).
+            X, C = parts(omega, index)
+            XDX = X @ D[index] @ X
+            M = C @ XDX
+            g = -np.trace(M, axis1=-2, axis2=-1)
+            # traces of products as sums of elementwise products (no einsum over 3 operands)
+            h = 2.0 * ((M @ D[index]) * np.swapaxes(X, -1, -2)).sum(axis=(-2, -1)) - weight[
+                index] * (M * np.swapaxes(M, -1, -2)).sum(axis=(-2, -1))
             return g, h
 
         everything = np.arange(size)
         ends = [parts(np.full(size, w), everything) for w in (0.0, 1.0)]
-        scale = sum((np.diagonal(X, axis1=-2, axis2=-1) * d).sum(axis=-1) for d, X in ends)
+        scale = sum(np.einsum("iab,iba->i", C, X) for X, C in ends)
     else:
         weight_matrix = np.eye(n) if kind == "trace" else W
         c = np.einsum("...ik,...ij,...jk->...k", V, weight_matrix, V)
@@ -219,7 +253,33 @@ def _optimal_weights(Ps, terms, kind, W, rho=None):
         weights, info = ci_weights(cho_inverse(cholesky(S, "P_i^-1 + Gamma")), weight,
                                    method="simplex")
         iterations, converged, solver = info["iterations"], info["converged"], "simplex"
+    _check_weights(weights)
     return weights, {"iterations": iterations, "converged": converged, "solver": solver}
+
+
+def _solve(Ps, terms, kind, W, rho, horizons):
+    """:func:`_optimal_weights`; a matrix found singular on the way becomes an
+    IllConditionedError naming the horizon (never a NaN optimum)."""
+    try:
+        return _optimal_weights(Ps, terms, kind, W, rho)
+    except IllConditionedError:
+        raise
+    except ValueError as exc:
+        if "not positive definite" not in str(exc):
+            raise
+        shown = horizons if np.ndim(horizons) == 0 else f"in {np.asarray(horizons).tolist()}"
+        raise IllConditionedError(
+            f"at horizon {shown} the horizon terms are numerically singular ({exc}): the "
+            "propagated bound's condition number exceeds what float64 resolves (for an "
+            "unstable F it grows like the ratio of the two largest |eigenvalues| to the power "
+            "2 * horizon); ask for a shorter horizon") from None
+
+
+def _check_weights(weights):
+    """Never return a non-finite optimum (as converged or otherwise)."""
+    if not np.isfinite(weights).all():
+        raise ValueError("the horizon-optimal weights are not finite: the propagated bound "
+                         "is not representable in float64 for this model and horizon")
 
 
 def _optimal_partial(Ps, terms, kind, W, rho):
@@ -234,12 +294,17 @@ def _optimal_partial(Ps, terms, kind, W, rho):
     terms = broadcast_terms(terms, batch)
     weight = None if kind == "det" else np.eye(est.dim) if kind == "trace" else W
     delta, iterations, converged, gap = partial_horizon_delta(informations, terms, rho, weight)
+    _check_weights(delta)
     return delta, {"iterations": iterations, "converged": converged, "solver": "simplex",
                    "gap": gap}
 
 
 def _fused_bound(Ps, terms, weights, rho=None):
-    """The propagated bound for CI weights, or for partial CI's ``delta`` given ``rho``."""
+    """The propagated bound for CI weights, or partial CI's ``delta`` given ``rho``, / 2^e.
+
+    Multiply by ``2^terms.exponent`` with :func:`cifilter._riccati.unscale` (which raises if
+    the product overflows).
+    """
     if rho is not None:
         informations = cho_inverse(as_covariances(Ps, name="Ps").L)
         return information_bound(informations, terms, _partial_weights(weights, rho))
@@ -290,9 +355,20 @@ def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
     ValueError
         Bad shapes, non-finite values, ``P`` or ``R`` not symmetric positive definite, ``Q``
         not positive semidefinite, ``H`` given without ``R`` (or vice versa), a sequence of
-        the wrong length, a negative horizon.
+        the wrong length, a negative horizon; a propagated bound that float64 cannot hold
+        (an unstable ``F`` and a long horizon: the message names the horizon, with
+        ``history=True`` the first that overflows, and the size of the bound).
+    IllConditionedError
+        A propagated bound that is finite but not numerically positive definite.
     TypeError
         Non-numeric input or a non-integer horizon.
+
+    Notes
+    -----
+    The recursion runs on ``P / 2^e`` with ``G Q G^T`` and ``R`` scaled alike (``e`` an
+    integer, changed only when the largest entry passes ``2^200``; the gains are scale
+    invariant), so intermediate bounds never overflow; the returned bound is finite,
+    symmetric and positive definite.
 
     References
     ----------
@@ -319,7 +395,10 @@ def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
         raise ValueError(f"P must hold square matrices (..., n, n), got shape {P.shape}")
     P, _ = check_covariances(P, "P")
     model = as_model(F, Q, H, R, G, P.shape[-1], steps=horizon if horizon else None)
-    bounds = riccati(P, model, horizon)
+    scaled = riccati_scaled(P, model, horizon)
+    steps = range(horizon + 1) if history else [horizon]
+    bounds = [_checked_bound(*scaled[k], _at(k if k == horizon else f"{k} of {horizon}"))
+              for k in steps]
     if not history:
         return bounds[-1]
     batch = np.broadcast_shapes(*(b.shape[:-2] for b in bounds))
@@ -374,22 +453,82 @@ class HorizonOmega:
                 f"horizon={self.info.get('horizon')})")
 
 
+def _at(horizons, weights=None):
+    """``where(index)`` for error messages; the last batch axis runs over ``horizons`` if an
+    array is given, and the weights found there (..., N) are quoted (they are well defined)."""
+
+    def where(index):
+        index = tuple(int(i) for i in index)
+        if np.ndim(horizons):
+            text, batch_index = f"at horizon {horizons[index[-1]]}", index[:-1]
+        else:
+            text, batch_index = f"at horizon {horizons}", index
+        if batch_index:
+            text += f" (batch index {batch_index})"
+        if weights is not None:
+            found = np.round(np.asarray(weights)[index], 6).tolist()
+            text += f", where the optimal weights {found} are still well defined,"
+        return text
+
+    return where
+
+
+def _value(P_hat, exponent, kind, W, where):
+    """The criterion of ``2^e P_hat`` without forming it (ValueError if not representable).
+
+    ``det`` is ``exp(log det)`` from a Cholesky factor of ``P_hat`` plus ``n e ln 2``.
+    """
+    exponent = np.broadcast_to(exponent, P_hat.shape[:-2])
+    if kind == "det":
+        n = P_hat.shape[-1]
+        L = cholesky(P_hat, "propagated bound")
+        log_det = (2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
+                   + n * np.log(2.0) * exponent)
+        bad = (log_det > np.log(np.finfo(float).max)) | (log_det < np.log(np.finfo(float).tiny))
+        if bad.any():
+            index = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
+            raise ValueError(
+                f"det of the propagated bound {where(index)} is not representable in float64: "
+                f"log det = {float(log_det[index]):.6g}; ask for a shorter horizon")
+        return np.exp(log_det)
+    value = _criterion_value(P_hat, kind, W)
+    return unscale(value[..., None, None], exponent, "the criterion of the propagated bound",
+                   where)[..., 0, 0]
+
+
+def _checked_bound(P_hat, exponent, where):
+    """``2^e P_hat``: finite (ValueError otherwise) and positive definite
+    (IllConditionedError otherwise)."""
+    P = unscale(P_hat, exponent, "the propagated bound", where)
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        cond = condition_number(P)
+        index = np.unravel_index(int(np.argmax(cond.ravel())), cond.shape)
+        raise ill_conditioned(f"the propagated bound {where(index)}", cond[index],
+                              "is not numerically positive definite") from None
+    return P
+
+
 def _choose(Ps, model, horizon, criterion, n, rho=None):
     """Horizon-optimal weights, value and bound, and the recursive approach's for comparison."""
     kind, W = _parse_criterion(criterion, n)
     check_steps_available(model, horizon)
     terms_list = horizon_terms(model, horizon, n, collect=sorted({0, horizon}))
     start, terms = terms_list[0], terms_list[-1]
-    weights, info = _optimal_weights(Ps, terms, kind, W, rho)
-    recursive, _ = _optimal_weights(Ps, start, kind, W, rho)
-    P = _fused_bound(Ps, terms, weights, rho)
+    weights, info = _solve(Ps, terms, kind, W, rho, horizon)
+    recursive, _ = _solve(Ps, start, kind, W, rho, 0)
+    P_hat = _fused_bound(Ps, terms, weights, rho)
+    where = _at(horizon, np.broadcast_to(weights, P_hat.shape[:-2] + weights.shape[-1:]))
+    P = _checked_bound(P_hat, terms.exponent, where)
+    value = _value(P_hat, terms.exponent, kind, W, where)
     P_recursive = _fused_bound(Ps, terms, recursive, rho)
     info.update(horizon=horizon, criterion=kind, omega_recursive=recursive,
-                value_recursive=_criterion_value(P_recursive, kind, W))
+                value_recursive=_value(P_recursive, terms.exponent, kind, W, _at(horizon)))
     if rho is not None:
         info.update(rho=np.broadcast_to(rho, weights.shape).copy(),
                     weights=_partial_weights(weights, rho))
-    return weights, _criterion_value(P, kind, W), P, info
+    return weights, value, P, info
 
 
 def _as_rho(rho, count, batch_shape):
@@ -445,7 +584,11 @@ def optimal_omega(PA, PB, F, Q, H, R, horizon, criterion="trace", G=None, *, rho
     ------
     ValueError
         Bad covariances, model or criterion (see :func:`propagate_bound`); a propagated bound
-        that is singular under the ``"det"`` criterion.
+        or criterion value that float64 cannot hold at this horizon (the message names the
+        horizon, the quantity and the optimal weights, which remain well defined).
+    IllConditionedError
+        The propagated bound, or a horizon term the ``"det"`` criterion needs, is not
+        numerically positive definite (its condition number exceeds what float64 resolves).
     TypeError
         Non-numeric input or a non-integer horizon.
 
@@ -552,7 +695,10 @@ def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None, *, rho=N
     Raises
     ------
     ValueError
-        Fewer than two estimates, bad covariances, model or criterion.
+        Fewer than two estimates, bad covariances, model or criterion; a propagated bound or
+        criterion value that float64 cannot hold (as :func:`optimal_omega`).
+    IllConditionedError
+        As :func:`optimal_omega`.
     TypeError
         Non-numeric input or a non-integer horizon.
 
@@ -638,13 +784,17 @@ def steady_state_covariance(F, Q, H, R, G=None):
     Returns
     -------
     ndarray, shape (..., n, n)
-        The steady posterior covariance (symmetric).
+        The steady posterior covariance (symmetric, finite, positive semidefinite; singular
+        only along noise-free modes).
 
     Raises
     ------
     ValueError
         Bad shapes or values; no stabilising solution (for example an undetectable pair
         ``(F, H)``, or ``F`` not stable without measurements).
+    IllConditionedError
+        A solution that is not finite or not positive semidefinite beyond rounding (the
+        solvers' result is checked, never returned as NaN).
     TypeError
         Non-numeric input.
 
@@ -691,7 +841,18 @@ def steady_state_covariance(F, Q, H, R, G=None):
             raise ValueError(f"the Riccati equation has no stabilising solution ({exc}); "
                              "is (F, H) detectable?") from None
         out[index] = update(symmetrize(M), (H_i, R_i))[0]
-    return symmetrize(out)
+    out = symmetrize(out)
+    finite = np.isfinite(out).all(axis=(-2, -1))
+    if not finite.all():
+        raise ill_conditioned("the steady-state covariance", np.inf, "is not finite")
+    # A steady state may be singular (noise-free stable modes); negative beyond rounding it
+    # may not.
+    eigenvalues = np.linalg.eigvalsh(out)
+    tolerance = 64.0 * n * np.finfo(float).eps * np.abs(eigenvalues).max(axis=-1)
+    if np.any(eigenvalues[..., 0] < -tolerance):
+        raise ill_conditioned("the steady-state covariance", condition_number(out),
+                              "is not numerically positive semidefinite")
+    return out
 
 
 @dataclass(frozen=True, repr=False)
@@ -879,7 +1040,10 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
     Raises
     ------
     ValueError
-        Bad covariances, model, criterion or horizons.
+        Bad covariances, model, criterion or horizons; a bound or criterion value that float64
+        cannot hold at one of the horizons (named in the message).
+    IllConditionedError
+        As :func:`optimal_omega`.
     TypeError
         Non-numeric input.
 
@@ -936,15 +1100,20 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
                                                      collect=everything)))
     terms = _stack_terms([collected[h] for h in horizons])
     Ps_k = Ps[..., None, :, :, :]
-    weights, _ = _optimal_weights(Ps_k, terms, kind, W, rho_k)
-    recursive_w, _ = _optimal_weights(Ps, collected[0], kind, W, rho)
-    P_batch = _fused_bound(Ps_k, terms, weights, rho_k)
-    P_recursive = _fused_bound(Ps_k, terms, recursive_w[..., None, :], rho_k)
+    weights, _ = _solve(Ps_k, terms, kind, W, rho_k, horizons)
+    recursive_w, _ = _solve(Ps, collected[0], kind, W, rho, 0)
+    P_hat = _fused_bound(Ps_k, terms, weights, rho_k)
+    where = _at(horizons, np.broadcast_to(weights, P_hat.shape[:-2] + weights.shape[-1:]))
+    P_batch = _checked_bound(P_hat, terms.exponent, where)
+    batch_value = _value(P_hat, terms.exponent, kind, W, where)
+    P_hat = _fused_bound(Ps_k, terms, recursive_w[..., None, :], rho_k)
+    P_recursive = _checked_bound(P_hat, terms.exponent, _at(horizons))
+    recursive_value = _value(P_hat, terms.exponent, kind, W, _at(horizons))
     batch_shape = P_batch.shape[:-3]
     omega_limit = np.full(batch_shape, np.nan)
     if limit:
         tail = _stack_terms([collected[h] for h in _LIMIT_HORIZONS])
-        w_tail, _ = _optimal_weights(Ps_k, tail, kind, W, rho_k)
+        w_tail, _ = _solve(Ps_k, tail, kind, W, rho_k, _LIMIT_HORIZONS)
         first, last = w_tail[..., 0, 0], w_tail[..., 1, 0]
         omega_limit = np.where(np.abs(first - last) < 1e-8, last, np.nan)
     steady_P = steady_value = None
@@ -960,8 +1129,8 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
     return HorizonStudy(
         horizons=horizons,
         omega=weights[..., 0],
-        batch=_criterion_value(P_batch, kind, W),
-        recursive=_criterion_value(P_recursive, kind, W),
+        batch=batch_value,
+        recursive=recursive_value,
         omega_recursive=np.broadcast_to(omega_recursive, batch_shape).copy(),
         criterion=kind,
         P_batch=P_batch,

@@ -7,12 +7,13 @@ import copy
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize
-from strategies import assert_psd, fused_error_covariance, sets_with_joint
+from strategies import assert_psd, fused_error_covariance, ill_conditioned_sets, sets_with_joint
 from test_horizon import (
     F_DYN,
+    F_UNSTABLE,
     H_A,
     H_B,
     Q_DYN,
@@ -20,9 +21,13 @@ from test_horizon import (
     R_B,
     criterion_value,
     dynamic_filter,
+    fused_bound_tolerance,
+    horizon_call_or_ill_conditioned,
     local_bounds_at_zero,
+    models,
     random_system,
 )
+from worst_case import assert_bound_holds
 
 from cifilter import KalmanFilter, naive_fusion, partial_ci
 from cifilter._partial_horizon import _chain, _problem
@@ -512,3 +517,45 @@ def test_filter_without_model_needs_future_for_pci_horizon():
     with pytest.raises(ValueError, match="no matrix H"):
         kf.fuse((np.zeros(2), np.eye(2)), method="pci", rho=0.5, horizon=3)
     assert kf.last_fusion is None
+
+
+# ----------------------------------------------------------------- overflow and conditioning
+@pytest.mark.parametrize("criterion", ["trace", "det"])
+def test_unstable_model_overflow_raises_and_representable_horizons_are_finite(criterion):
+    """Issue 9, item 4, with rho: no NaN optimum; horizon 5000 (bound about 1e795) raises."""
+    PA, PB = local_bounds_at_zero()
+    with pytest.raises(ValueError, match="horizon 5000"):
+        optimal_omega(PA, PB, F_UNSTABLE, np.eye(2), None, None, 5000, criterion, rho=0.5)
+    r = optimal_omega(PA, PB, F_UNSTABLE, np.eye(2), None, None, 1000, criterion, rho=0.5)
+    assert r.info["converged"] and np.isfinite(r.P).all() and np.isfinite(r.value)
+    np.linalg.cholesky(r.P)
+    grid = np.linspace(0.0, 1.0, 401)
+    values = [np.linalg.slogdet(P)[1] if criterion == "det" else np.log(np.trace(P))
+              for P in propagated(np.stack([PA, PB]), np.stack([grid, 1 - grid], -1), 0.5,
+                                  F_UNSTABLE, np.eye(2), None, None, 1000)]
+    best = np.linalg.slogdet(r.P)[1] if criterion == "det" else np.log(np.trace(r.P))
+    assert best <= min(values) + 1e-12 * abs(best)
+
+
+@settings(max_examples=30)
+@given(st.integers(2, 5), st.integers(2, 3), st.sampled_from(["trace", "det"]),
+       st.sampled_from([0, 1, 5, 40]), st.floats(0.0, 1.0), st.data())
+def test_horizon_delta_of_ill_conditioned_estimates_is_on_the_simplex_and_conservative(
+        count, n, criterion, horizon, rho, data):
+    Ps = np.asarray(data.draw(ill_conditioned_sets(count, n)))
+    F, Q, H, R = data.draw(models(n))
+    r = horizon_call_or_ill_conditioned(
+        lambda: horizon_weights(Ps, F, Q, H, R, horizon, criterion, rho=rho), Ps, F, Q, H, R,
+        horizon, rho)
+    if r is None:
+        return
+    delta = r.omega
+    assert np.isfinite(delta).all() and np.all(delta >= 0.0)
+    assert delta.sum() == pytest.approx(1.0, abs=1e-12)
+    assert np.isfinite(r.value) and r.value > 0 and np.isfinite(r.P).all()
+    np.linalg.cholesky(r.P)
+    fused = partial_ci(np.zeros((count, n)), Ps, rho, delta=delta)
+    assert_bound_holds(fused.P, fused.gains, Ps, rho=rho, tol=fused_bound_tolerance(Ps))
+    tol = max(1e-7, fused_bound_tolerance(Ps))  # the fused P's own rounding (information form)
+    np.testing.assert_allclose(r.P, propagate_bound(fused.P, F, Q, H, R, horizon),
+                               rtol=tol, atol=tol * np.abs(r.P).max())
