@@ -262,10 +262,10 @@ def _solve(Ps, terms, kind, W, rho, horizons):
     IllConditionedError naming the horizon (never a NaN optimum)."""
     try:
         return _optimal_weights(Ps, terms, kind, W, rho)
-    except IllConditionedError:
-        raise
-    except ValueError as exc:
-        if "not positive definite" not in str(exc):
+    except ValueError as exc:  # IllConditionedError included: it gains the horizon
+        if not isinstance(exc, IllConditionedError) and "not positive definite" not in str(exc):
+            raise
+        if "at horizon" in str(exc):
             raise
         shown = horizons if np.ndim(horizons) == 0 else f"in {np.asarray(horizons).tolist()}"
         raise IllConditionedError(
