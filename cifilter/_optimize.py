@@ -80,7 +80,7 @@ def minimize_convex_interval(derivatives, size, *, scale, xtol=1e-13, max_iter=1
 
 
 def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, max_iter=200,
-                            gtol=0.0, absolute_gap=False):
+                            gtol=0.0, absolute_gap=False, subset=False):
     """Minimise smooth convex functions over the probability simplex, batched.
 
     Parameters
@@ -109,6 +109,11 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
     absolute_gap : bool, optional
         Compare the gap with ``gtol`` itself rather than ``gtol * |f|`` (for objectives
         such as a log-determinant whose value may be near zero).
+    subset : bool, optional
+        ``shape`` is one axis and ``evaluate(w, index)``, ``objective(w, index)`` take the
+        rows ``index`` (an integer array) of the problems: only unfinished problems are
+        evaluated, so a batch costs what its problems cost, and one slow problem does
+        not make every other one pay for its iterations.
 
     Returns
     -------
@@ -131,6 +136,25 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
     result the KKT conditions of the simplex hold: ``g_i = mu`` for ``w_i > 0`` and
     ``g_i >= mu`` for ``w_i = 0``.
     """
+    def evaluate_rows(w, rows):
+        if not subset:
+            return evaluate(w)
+        f, g = np.zeros(shape), np.zeros(shape + (count,))
+        H = np.broadcast_to(np.eye(count), shape + (count, count)).copy()
+        index = np.flatnonzero(rows)
+        if index.size:
+            f[index], g[index], H[index] = evaluate(w[index], index)
+        return f, g, H
+
+    def objective_rows(w, rows):
+        if not subset:
+            return objective(w)
+        f = np.zeros(shape)
+        index = np.flatnonzero(rows)
+        if index.size:
+            f[index] = objective(w[index], index)
+        return f
+
     w = np.full(shape + (count,), 1.0 / count)
     free = np.ones(shape + (count,), dtype=bool)
     done = np.zeros(shape, dtype=bool)
@@ -140,10 +164,12 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
     previous_d = np.zeros(shape + (count,))  # the last step's direction, length and slope
     previous_t = np.zeros(shape)
     previous_slope = np.zeros(shape)
+    previous_last = np.zeros(shape, dtype=bool)  # the last step was an unchecked Newton step
+    gap = np.full(shape, np.inf)
     for _ in range(max_iter):
         if (done | finished).all():
             break
-        f, g, H = evaluate(w)
+        f, g, H = evaluate_rows(w, ~done & ~finished)
         active = ~done & ~finished
         both_free = free[..., :, None] & free[..., None, :]
         # Normalise the curvature so that the constraint rows and the Hessian have the same
@@ -165,6 +191,7 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         mu = -solution[..., count] * curvature[..., 0, 0]
 
         if gtol > 0.0:
+            previous_gap = gap
             gap = np.einsum("...i,...i->...", w, g) - g.min(axis=-1)
             certified = active & (gap <= gtol * (1.0 if absolute_gap else np.abs(f)))
             done |= certified
@@ -214,8 +241,14 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
             # A Newton direction that is not a descent direction (curvature at the rounding
             # level of the Hessian, of either sign) is replaced likewise.
             converged_now = np.zeros(shape, dtype=bool)
-            stuck = active & (small_step | (slope >= 0.0)) & ~release_any
-            last = active & rounding & ~stuck & ~release_any
+            # At the rounding level the sign of the slope is noise: Newton is then replaced
+            # only where its last unchecked step did not halve the gap.
+            # A step below xtol is still taken (unchecked): only the gap ends a problem.
+            stalled_newton = previous_last & ~(gap <= 0.5 * previous_gap)
+            zero_step = np.abs(d).max(axis=-1) <= 4.0 * np.finfo(float).eps
+            stuck = active & ~release_any & (
+                zero_step | ((slope >= 0.0) & ~rounding) | (rounding & stalled_newton))
+            last = active & (rounding | small_step) & ~stuck & ~release_any
         else:
             converged_now = active & small & ~release_any
             stuck = np.zeros(shape, dtype=bool)
@@ -258,7 +291,7 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
             # grown (f nearly linear along d).
             t_1 = np.minimum(1.0, t_max)
             trial = np.where(by_slope[..., None], np.clip(w + t_1[..., None] * d, 0.0, None), w)
-            _, g_1, _ = evaluate(trial)
+            _, g_1, _ = evaluate_rows(trial, by_slope)
             s_1 = np.einsum("...i,...i->...", g_1, d)
             with np.errstate(divide="ignore", invalid="ignore"):
                 secant = np.where(s_1 > slope, t_1 * -slope / (s_1 - slope), t_max)
@@ -268,7 +301,7 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         for _ in range(60):  # Armijo backtracking, batched
             trial = np.where(stepping[..., None], w + t[..., None] * d, w)
             trial = np.clip(trial, 0.0, None)
-            f_trial = objective(trial)
+            f_trial = objective_rows(trial, stepping & ~last & ~by_slope)
             failed = stepping & ~last & ~by_slope & ~(
                 f_trial <= f + 1e-4 * t * slope + 1e-15 * np.abs(f))
             if not failed.any():
@@ -285,6 +318,7 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         previous_d = d
         previous_t = np.where(stepping & ~blocked & ~stuck & ~last, t, 0.0)
         previous_slope = slope
+        previous_last = last & stepping
         new_w = np.where(stepping[..., None], w + t[..., None] * d, w)
         hit = blocked[..., None] & (ratio == t_max[..., None])
         new_w = np.where(hit, 0.0, np.clip(new_w, 0.0, None))

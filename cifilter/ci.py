@@ -327,25 +327,33 @@ def _simplex_weights(L_inv, kind, W, count, shape):
     Hessian along the ties) stop as soon as the criterion is optimal.
     """
 
-    def objective(w):
-        return _criterion_of_factor(information_factors(L_inv, w).R_inv, kind, W)
+    size = int(np.prod(shape, dtype=int))
+    L_inv = L_inv.reshape((size,) + L_inv.shape[-3:])
+    W = None if W is None else W.reshape((size,) + W.shape[-2:])
 
-    def evaluate(w):
-        factors = information_factors(L_inv, w)
-        f = _criterion_of_factor(factors.R_inv, kind, W)
-        g = _criterion_gradient(factors, kind, W)
+    def objective(w, index):
+        R_inv = information_factors(L_inv[index], w).R_inv
+        return _criterion_of_factor(R_inv, kind, None if W is None else W[index])
+
+    def evaluate(w, index):
+        factors = information_factors(L_inv[index], w)
+        Wi = None if W is None else W[index]
+        f = _criterion_of_factor(factors.R_inv, kind, Wi)
+        g = _criterion_gradient(factors, kind, Wi)
         CtC = np.einsum("...iab,...jac->...ijbc", factors.C, factors.C)  # C_i^T C_j
         if kind == "det":
             H = np.einsum("...ijbc,...ijbc->...ij", CtC, CtC)
         else:
-            WB = factors.B if kind == "trace" else W[..., None, :, :] @ factors.B
+            WB = factors.B if kind == "trace" else Wi[..., None, :, :] @ factors.B
             BtWB = np.einsum("...iab,...jac->...ijbc", factors.B, WB)  # B_i^T W B_j
             H = 2.0 * np.einsum("...ijbc,...jicb->...ij", BtWB, CtC)
         return f, -g, symmetrize(H)
 
     weights, iterations, _ = minimize_convex_simplex(
-        evaluate, objective, count, shape, gtol=0.25 * GAP_TOL, absolute_gap=kind == "det"
+        evaluate, objective, count, (size,), gtol=0.25 * GAP_TOL,
+        absolute_gap=kind == "det", subset=True,
     )
+    weights, iterations = weights.reshape(shape + (count,)), iterations.reshape(shape)
     return weights, iterations
 
 

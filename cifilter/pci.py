@@ -196,7 +196,7 @@ def _newton(L_inv, rho, tol, max_iter):
     formed from the factors ``B_i = P L_i^-T`` and ``C_i = R^-1 L_i^-T``:
     ``Tr(P I_i P) = ||B_i||^2`` and ``Tr(P I_i P I_j P) = Tr(B_i^T B_j C_j^T C_i)``. Optima on
     the boundary of the simplex (an ignored estimate) are exact. Each problem stops when
-    its certified gap (:func:`_relative_gap`) is below ``tol / 4``.
+    its certified gap (:func:`_relative_gap`) is at most ``tol``.
 
     Positive bounds below ``_NEWTON_RHO_FLOOR`` are raised to it for the Newton phase
     only: near the optimum ``delta_i ~ sqrt(rho_i)`` the curvature grows like
@@ -207,28 +207,34 @@ def _newton(L_inv, rho, tol, max_iter):
     plus sweeps) per problem.
     """
     true_rho = rho
-    rho = np.where(rho > 0.0, np.maximum(rho, _NEWTON_RHO_FLOOR), 0.0)
+    batch, count = rho.shape[:-1], rho.shape[-1]
+    size = int(np.prod(batch, dtype=int))
+    flat_L_inv = L_inv.reshape((size,) + L_inv.shape[-3:])
+    floored = np.where(rho > 0.0, np.maximum(rho, _NEWTON_RHO_FLOOR), 0.0).reshape(size, count)
 
-    def objective(delta):
-        R_inv = information_factors(L_inv, _partial_weights(delta, rho)).R_inv
+    def objective(delta, index):
+        w = _partial_weights(delta, floored[index])
+        R_inv = information_factors(flat_L_inv[index], w).R_inv
         return np.square(R_inv).sum(axis=(-2, -1))
 
-    def evaluate(delta):
-        _, factors, spread = _bound_and_spread(delta, rho, L_inv)
-        first, second = _weight_derivatives(delta, rho)
+    def evaluate(delta, index):
+        r = floored[index]
+        _, factors, spread = _bound_and_spread(delta, r, flat_L_inv[index])
+        first, second = _weight_derivatives(delta, r)
         B, C = factors.B, factors.C
         BtB = np.einsum("...iab,...jac->...ijbc", B, B)  # B_i^T B_j
         CtC = np.einsum("...iab,...jac->...ijbc", C, C)  # C_i^T C_j
         curvature = np.einsum("...ijbc,...jicb->...ij", BtB, CtC)  # Tr(P I_i P I_j P)
         H = 2.0 * first[..., :, None] * first[..., None, :] * curvature
-        H = H - (second * spread)[..., None] * np.eye(delta.shape[-1])
+        H = H - (second * spread)[..., None] * np.eye(count)
         trace = np.square(factors.R_inv).sum(axis=(-2, -1))
         return trace, -first * spread, symmetrize(H)
 
-    batch, count = rho.shape[:-1], rho.shape[-1]
     delta, steps, _ = minimize_convex_simplex(
-        evaluate, objective, count, batch, xtol=tol, max_iter=max_iter, gtol=0.25 * tol
+        evaluate, objective, count, (size,), xtol=tol, max_iter=max_iter, gtol=tol,
+        subset=True,
     )
+    delta, steps = delta.reshape(batch + (count,)), steps.reshape(batch)
     _, factors, spread = _bound_and_spread(delta, true_rho, L_inv)
     trace = np.square(factors.R_inv).sum(axis=(-2, -1))
     redo = (_relative_gap(delta, true_rho, trace, spread) > tol).reshape(-1)
