@@ -184,7 +184,7 @@ def _spread_squared(L):
         return (d.max(axis=-1) / d.min(axis=-1)) ** 2
 
 
-def _diagonalised_weights(est, kind, W, L_inv):
+def _diagonalised_weights(est, kind, W, L1_inv):
     """Criterion-optimal omega for N = 2 by simultaneous diagonalisation (the fast path).
 
     With P_1 = L L^T and L^-1 P_2 L^-T = U diag(lam) U^T, T = L U gives
@@ -198,7 +198,6 @@ def _diagonalised_weights(est, kind, W, L_inv):
     cond(P_1) cond(P_2), so for ill-conditioned pairs they are rounding noise: such
     problems are not ``trusted`` and the caller solves them from Cholesky factors.
     """
-    L1_inv = L_inv[..., 0, :, :]
     S = symmetrize(L1_inv @ est.P[..., 1, :, :] @ np.swapaxes(L1_inv, -1, -2))
     lam, U = np.linalg.eigh(S)
     T = est.L[..., 0, :, :] @ U
@@ -245,7 +244,7 @@ def _diagonalised_weights(est, kind, W, L_inv):
                          lam, U, T)
 
 
-def _fuse_diagonalised(est, L_inv, d, weights):
+def _fuse_diagonalised(est, L1_inv, d, weights):
     """CI of two estimates from their diagonalisation, as the bound of its gains.
 
     ``K_1 = omega P P_1^-1 = omega T diag(e) U^T L_1^-1`` with
@@ -258,7 +257,7 @@ def _fuse_diagonalised(est, L_inv, d, weights):
     n = est.dim
     e = d.lam / (1.0 + omega[..., None] * (d.lam - 1.0))
     TE = d.T * e[..., None, :]
-    K1 = omega[..., None, None] * (TE @ (np.swapaxes(d.U, -1, -2) @ L_inv[..., 0, :, :]))
+    K1 = omega[..., None, None] * (TE @ (np.swapaxes(d.U, -1, -2) @ L1_inv))
     # An ignored estimate gets a gain of exactly zero (its term is not in the bound)
     K1 = np.where((omega == 1.0)[..., None, None], np.eye(n), K1)
     K2 = np.eye(n) - K1
@@ -415,22 +414,27 @@ def _optimal_weights(est, kind, W, method="auto", L_inv=None):
         raise ValueError(f"method must be 'auto', 'diagonalise' or 'simplex', got {method!r}")
     if method == "diagonalise" and est.count != 2:
         raise ValueError("method='diagonalise' needs exactly two estimates")
-    if L_inv is None:
-        L_inv = lower_inverse_stack(est.L)
     shape, n = est.batch_shape, est.dim
     Wb = None if W is None else np.broadcast_to(W, shape + (n, n))
     two = est.count == 2 and method != "simplex"
     if not two:
+        if L_inv is None:
+            L_inv = lower_inverse_stack(est.L)
         weights, iterations = _simplex_weights(L_inv, kind, Wb, est.count, shape)
         fused, gap = _fuse_and_certify(est, L_inv, weights, kind, Wb)
         result = (fused.x, fused.P, fused.gains)
     else:
-        d = _diagonalised_weights(est, kind, W, L_inv)
+        # (only the first inverse factor is needed unless some problem is not trusted)
+        L1_inv = (lower_inverse_stack(est.L[..., 0, :, :]) if L_inv is None
+                  else L_inv[..., 0, :, :])
+        d = _diagonalised_weights(est, kind, W, L1_inv)
         weights = np.stack([d.omega, 1.0 - d.omega], axis=-1)
         iterations, gap = d.iterations, d.gap
         with np.errstate(all="ignore"):  # rows that are not trusted are replaced below
-            result = _fuse_diagonalised(est, L_inv, d, weights)
+            result = _fuse_diagonalised(est, L1_inv, d, weights)
         if not np.all(d.trusted):
+            if L_inv is None:
+                L_inv = lower_inverse_stack(est.L)
             weights, iterations, gap, result = _resolve_untrusted(
                 est, L_inv, kind, Wb, ~d.trusted, weights, iterations, gap, result)
     info = {
@@ -599,10 +603,9 @@ def covariance_intersection(xs, Ps, criterion="trace", omega=None):
     est = as_estimates(xs, Ps)
     kind, W = _parse_criterion(criterion, est.dim)
     info = {"criterion": kind}
-    L_inv = lower_inverse_stack(est.L)
     fused = None
     if omega is None:
-        weights, solver_info, fused = _optimal_weights(est, kind, W, L_inv=L_inv)
+        weights, solver_info, fused = _optimal_weights(est, kind, W)
         info.update(rule="optimal", **solver_info)
     elif isinstance(omega, str):
         if omega not in FAST_OMEGA_RULES:
@@ -616,7 +619,7 @@ def covariance_intersection(xs, Ps, criterion="trace", omega=None):
         weights = check_weights(omega, est.count, batch_shape=est.batch_shape)
         info["rule"] = "fixed"
     if fused is None:
-        assembled = weighted_fusion(est.x, est.L, weights, L_inv)
+        assembled = weighted_fusion(est.x, est.L, weights)
         fused = (assembled.x, assembled.P, assembled.gains)
     x, P, gains = fused
     info.update(_criterion_report(P, kind, W))
