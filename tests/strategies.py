@@ -161,3 +161,10 @@ def ill_conditioned_sets(draw, count, n, max_condition=MAX_CONDITION, common_sca
         scales = (10.0 ** log_scale, 10.0 ** log_scale)
         return [draw(ill_conditioned_spd(n, max_condition, scales)) for _ in range(count)]
     return [draw(ill_conditioned_spd(n, max_condition)) for _ in range(count)]
+
+
+def means_of_their_scale(values, Pa, Pb):
+    """Two means of the size of their standard deviations, from 10 unit values."""
+    n = Pa.shape[0]
+    return (np.array(values[:n]) * np.sqrt(np.diag(Pa)),
+            np.array(values[5:5 + n]) * np.sqrt(np.diag(Pb)))

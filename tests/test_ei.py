@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from scipy import stats
-from strategies import spd_matrices
+from strategies import means_of_their_scale, spd_matrices
 
 import cifilter
 from cifilter import ellipsoidal_intersection, fuse, pc_ellipsoidal_intersection
@@ -727,10 +727,7 @@ ill_pairs = st.integers(1, 5).flatmap(lambda n: st.booleans().flatmap(
 def test_ei_is_positive_definite_on_ill_conditioned_pairs(Ps, values, mutual_mean,
                                                           regularization):
     Pa, Pb = Ps
-    n = Pa.shape[0]
-    # means of the size of the standard deviations
-    xa = np.array(values[:n]) * np.sqrt(np.diag(Pa))
-    xb = np.array(values[5:5 + n]) * np.sqrt(np.diag(Pb))
+    xa, xb = means_of_their_scale(values, Pa, Pb)
     regularizer, eps = regularization
     options = {"eps": eps, "mutual_mean": mutual_mean, "regularizer": regularizer}
     try:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from strategies import ill_conditioned_sets
+from strategies import ill_conditioned_sets, means_of_their_scale
 from test_ei import (
     METRIC_TOL,
     assert_valid_fusion,
@@ -46,9 +46,7 @@ def assert_honest_flags(r):
 def test_pc_is_positive_definite_on_ill_conditioned_pairs(Ps, values, mutual_mean,
                                                           regularization):
     Pa, Pb = Ps
-    n = Pa.shape[0]
-    xa = np.array(values[:n]) * np.sqrt(np.diag(Pa))
-    xb = np.array(values[5:5 + n]) * np.sqrt(np.diag(Pb))
+    xa, xb = means_of_their_scale(values, Pa, Pb)
     regularizer, eps = regularization
     r = pc_or_contract_error(xa, Pa, xb, Pb, mutual_mean=mutual_mean,
                              regularizer=regularizer, eps=eps)
