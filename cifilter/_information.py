@@ -31,11 +31,13 @@ __all__ = [
     "InformationFactors",
     "WeightedFusion",
     "checked_cholesky",
+    "diagonal_spread_squared",
     "information_factors",
     "information_matrices",
     "lower_inverse_stack",
+    "squared_norms",
+    "trace_curvature",
     "weighted_fusion",
-    "weighted_information_fusion",
 ]
 
 _EPS = np.finfo(float).eps
@@ -69,18 +71,22 @@ class WeightedFusion(NamedTuple):
     factors: "InformationFactors"  # of P^-1 = sum_i w_i P_i^-1 (gradients of the criteria)
 
 
-def _numerically_positive_definite(R, n):
-    """Factors whose diagonal spans at most ``1 / (n eps)`` in square, per problem.
+def diagonal_spread_squared(L):
+    """``(max / min |diagonal|)^2`` of triangular factors: a lower bound of the condition
+    number of ``L L^T`` (inf for a zero, NaN for a non-finite diagonal)."""
+    d = np.abs(np.diagonal(L, axis1=-2, axis2=-1))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        return (d.max(axis=-1) / d.min(axis=-1)) ** 2
 
-    ``(max / min diagonal of R)^2`` is a lower bound of the condition number; beyond
-    ``1 / (n eps)`` the factor is rounding noise, and so would be every result formed
-    from it.
+
+def _numerically_positive_definite(R, n):
+    """Factors whose diagonal spans less than ``1 / (n eps)`` in square, per problem.
+
+    Beyond that the factor is rounding noise, and so would be every result formed from it.
     """
-    diagonal = np.abs(np.diagonal(R, axis1=-2, axis2=-1))
     finite = np.isfinite(R).all(axis=(-2, -1))
-    with np.errstate(invalid="ignore", over="ignore"):
-        spread = diagonal.min(axis=-1) ** 2 * (1.0 / (n * _EPS))
-        return finite & (spread > diagonal.max(axis=-1) ** 2)
+    with np.errstate(invalid="ignore"):
+        return finite & (diagonal_spread_squared(R) < 1.0 / (n * _EPS))
 
 
 def checked_cholesky(A, name, *, failures="raise"):
@@ -236,7 +242,21 @@ def weighted_fusion(x, L, weights, L_inv=None, factors=None):
     return WeightedFusion(x_fused, P, gains, factors)
 
 
-def weighted_information_fusion(x, L, weights, informations=None):
-    """``(x, P, gains)`` of :func:`weighted_fusion` (``informations`` is not needed)."""
-    fused = weighted_fusion(x, L, weights)
-    return fused.x, fused.P, fused.gains
+def squared_norms(A):
+    """Squared Frobenius norms over the last two axes (``trace P = ||R_inv||^2``,
+    ``Tr(P P_i^-1 P) = ||B_i||^2``, ``Tr(P P_i^-1) = ||C_i||^2``)."""
+    return np.square(A).sum(axis=(-2, -1))
+
+
+def trace_curvature(factors, W=None):
+    """``Tr(W P P_i^-1 P P_j^-1 P)`` for every pair (i, j), shape (..., N, N).
+
+    With ``P P_i^-1 P = B_i B_i^T`` and ``L_i^-1 P L_j^-T = C_i^T C_j`` it is
+    ``Tr(B_i^T W B_j C_j^T C_i)``: the Hessian factor of ``Tr(W P(w))`` in the weights
+    (CI: ``2 x`` this; partial CI: with the chain rule of eq. (24)). ``W = None`` is ``I``.
+    """
+    B, C = factors.B, factors.C
+    WB = B if W is None else W[..., None, :, :] @ B
+    BtWB = np.einsum("...iab,...jac->...ijbc", B, WB)  # B_i^T W B_j
+    CtC = np.einsum("...iab,...jac->...ijbc", C, C)  # C_i^T C_j
+    return np.einsum("...ijbc,...jicb->...ij", BtWB, CtC)

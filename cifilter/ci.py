@@ -16,9 +16,12 @@ import numpy as np
 
 from ._information import (
     checked_cholesky,
+    diagonal_spread_squared,
     information_factors,
     information_matrices,
     lower_inverse_stack,
+    squared_norms,
+    trace_curvature,
     weighted_fusion,
 )
 from ._linalg import (
@@ -120,11 +123,6 @@ FAST_OMEGA_RULES = {
 GAP_TOL = 1e-9
 
 
-def _squared_norms(A):
-    """Squared Frobenius norms over the last two axes."""
-    return np.square(A).sum(axis=(-2, -1))
-
-
 def _criterion_gradient(factors, kind, W):
     """``g_i = -d f / d w_i >= 0`` from the information factors, without cancellation.
 
@@ -132,9 +130,9 @@ def _criterion_gradient(factors, kind, W):
     (``B_i = P L_i^-T``, ``C_i = R^-1 L_i^-T``; see ``_information.information_factors``).
     """
     if kind == "det":
-        return _squared_norms(factors.C)
+        return squared_norms(factors.C)
     if kind == "trace":
-        return _squared_norms(factors.B)
+        return squared_norms(factors.B)
     return np.einsum("...ij,...kjl,...kil->...k", W, factors.B, factors.B)
 
 
@@ -143,7 +141,7 @@ def _criterion_of_factor(R_inv, kind, W):
     if kind == "det":
         return 2.0 * np.log(np.abs(np.diagonal(R_inv, axis1=-2, axis2=-1))).sum(axis=-1)
     if kind == "trace":
-        return _squared_norms(R_inv)
+        return squared_norms(R_inv)
     return np.einsum("...ij,...ki,...kj->...", W, R_inv, R_inv)
 
 
@@ -175,13 +173,6 @@ class _Diagonalised(NamedTuple):
     lam: np.ndarray  # (..., n) generalised eigenvalues of (P_2, P_1)
     U: np.ndarray  # (..., n, n) eigenvectors of L_1^-1 P_2 L_1^-T
     T: np.ndarray  # (..., n, n) L_1 U: P_1 = T T^T, P_2 = T diag(lam) T^T
-
-
-def _spread_squared(L):
-    """(max / min |diagonal|)^2 of triangular factors: a lower bound of the condition number."""
-    d = np.abs(np.diagonal(L, axis1=-2, axis2=-1))
-    with np.errstate(divide="ignore"):
-        return (d.max(axis=-1) / d.min(axis=-1)) ** 2
 
 
 def _diagonalised_weights(est, kind, W, L1_inv):
@@ -234,8 +225,8 @@ def _diagonalised_weights(est, kind, W, L1_inv):
         if kind != "det":
             gap = gap / (c * (a + 1.0) / (1.0 + omega[:, None] * a)).sum(axis=-1)
         spread = lam_flat.max(axis=-1) / lam_flat.min(axis=-1)
-    conditioning = np.maximum(_spread_squared(est.L[..., 0, :, :]),
-                              _spread_squared(est.L[..., 1, :, :])).reshape(size)
+    conditioning = np.maximum(diagonal_spread_squared(est.L[..., 0, :, :]),
+                              diagonal_spread_squared(est.L[..., 1, :, :])).reshape(size)
     trusted = (usable & (spread <= _DIAGONAL_TRUST) & (conditioning <= _DIAGONAL_TRUST)
                & np.isfinite(gap))
     shape = est.batch_shape
@@ -297,9 +288,9 @@ def _interval_weights(L_inv, kind, W, scale):
         ER = E @ R
         if kind == "det":
             RER = np.swapaxes(R, -1, -2) @ ER
-            curvature = _squared_norms(RER)
+            curvature = squared_norms(RER)
         elif kind == "trace":
-            curvature = 2.0 * _squared_norms(ER)
+            curvature = 2.0 * squared_norms(ER)
         else:
             curvature = 2.0 * np.einsum("...ij,...jk,...ik->...", W[index], ER, ER)
         slope = g[:, 1] - g[:, 0]
@@ -339,13 +330,11 @@ def _simplex_weights(L_inv, kind, W, count, shape):
         Wi = None if W is None else W[index]
         f = _criterion_of_factor(factors.R_inv, kind, Wi)
         g = _criterion_gradient(factors, kind, Wi)
-        CtC = np.einsum("...iab,...jac->...ijbc", factors.C, factors.C)  # C_i^T C_j
         if kind == "det":
+            CtC = np.einsum("...iab,...jac->...ijbc", factors.C, factors.C)  # C_i^T C_j
             H = np.einsum("...ijbc,...ijbc->...ij", CtC, CtC)
         else:
-            WB = factors.B if kind == "trace" else Wi[..., None, :, :] @ factors.B
-            BtWB = np.einsum("...iab,...jac->...ijbc", factors.B, WB)  # B_i^T W B_j
-            H = 2.0 * np.einsum("...ijbc,...jicb->...ij", BtWB, CtC)
+            H = 2.0 * trace_curvature(factors, Wi)
         return f, -g, symmetrize(H)
 
     weights, iterations, _ = minimize_convex_simplex(

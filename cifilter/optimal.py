@@ -4,7 +4,7 @@
 
 import numpy as np
 
-from ._information import weighted_information_fusion
+from ._information import weighted_fusion
 from ._linalg import MAX_CONDITION, cho_inverse, cho_solve, symmetrize
 from ._validation import (
     as_estimates,
@@ -62,7 +62,8 @@ def naive_fusion(xs, Ps):
     ([1.0], [[0.666666666667]])
     """
     est = as_estimates(xs, Ps)
-    x, P, gains = weighted_information_fusion(est.x, est.L, np.ones(est.batch_shape + (est.count,)))
+    fused = weighted_fusion(est.x, est.L, np.ones(est.batch_shape + (est.count,)))
+    x, P, gains = fused.x, fused.P, fused.gains
     return FusionResult(restore_style(x, est.column), P, "naive", None, gains, {})
 
 

@@ -20,6 +20,8 @@ from ._information import (
     checked_cholesky,
     information_factors,
     lower_inverse_stack,
+    squared_norms,
+    trace_curvature,
     weighted_fusion,
 )
 from ._linalg import symmetrize
@@ -116,7 +118,7 @@ def _bound_and_spread(delta, rho, L_inv):
     """
     w = _partial_weights(delta, rho)
     factors = information_factors(L_inv, w)
-    spread = np.square(factors.B).sum(axis=(-2, -1))
+    spread = squared_norms(factors.B)
     return w, factors, spread
 
 
@@ -171,7 +173,7 @@ def _alternating_projection(L_inv, rho, tol, max_iter, start=None):
             break
         d, r = delta[active], rho[active]
         w, factors, spread = _bound_and_spread(d, r, L_inv[active])  # Step 2
-        gap = _relative_gap(d, r, np.square(factors.R_inv).sum(axis=(-2, -1)), spread)
+        gap = _relative_gap(d, r, squared_norms(factors.R_inv), spread)
         # sqrt(rho_i Tr(K_i P_i K_i^T)), factored so that a tiny rho_i does not underflow
         root = np.sqrt(r) * w * np.sqrt(spread)
         total = root.sum(axis=-1, keepdims=True)
@@ -215,19 +217,16 @@ def _newton(L_inv, rho, tol, max_iter):
     def objective(delta, index):
         w = _partial_weights(delta, floored[index])
         R_inv = information_factors(flat_L_inv[index], w).R_inv
-        return np.square(R_inv).sum(axis=(-2, -1))
+        return squared_norms(R_inv)
 
     def evaluate(delta, index):
         r = floored[index]
         _, factors, spread = _bound_and_spread(delta, r, flat_L_inv[index])
         first, second = _weight_derivatives(delta, r)
-        B, C = factors.B, factors.C
-        BtB = np.einsum("...iab,...jac->...ijbc", B, B)  # B_i^T B_j
-        CtC = np.einsum("...iab,...jac->...ijbc", C, C)  # C_i^T C_j
-        curvature = np.einsum("...ijbc,...jicb->...ij", BtB, CtC)  # Tr(P I_i P I_j P)
+        curvature = trace_curvature(factors)  # Tr(P I_i P I_j P)
         H = 2.0 * first[..., :, None] * first[..., None, :] * curvature
         H = H - (second * spread)[..., None] * np.eye(count)
-        trace = np.square(factors.R_inv).sum(axis=(-2, -1))
+        trace = squared_norms(factors.R_inv)
         return trace, -first * spread, symmetrize(H)
 
     delta, steps, _ = minimize_convex_simplex(
@@ -236,7 +235,7 @@ def _newton(L_inv, rho, tol, max_iter):
     )
     delta, steps = delta.reshape(batch + (count,)), steps.reshape(batch)
     _, factors, spread = _bound_and_spread(delta, true_rho, L_inv)
-    trace = np.square(factors.R_inv).sum(axis=(-2, -1))
+    trace = squared_norms(factors.R_inv)
     redo = (_relative_gap(delta, true_rho, trace, spread) > tol).reshape(-1)
     steps = np.array(steps).reshape(-1)
     if redo.any():
@@ -423,8 +422,8 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=N
     weights = _partial_weights(delta, used)
     fused = weighted_fusion(est.x, est.L, weights, L_inv)
     checked_cholesky(fused.P, "the fused covariance")
-    spread = np.square(fused.factors.B).sum(axis=(-2, -1))
-    trace = np.square(fused.factors.R_inv).sum(axis=(-2, -1))
+    spread = squared_norms(fused.factors.B)
+    trace = squared_norms(fused.factors.R_inv)
     with np.errstate(over="ignore", invalid="ignore"):  # a fixed delta_i = 0, rho_i ~ 1e-300
         gap = _relative_gap(delta, used, trace, spread)
     if info["rule"] == "optimal":
