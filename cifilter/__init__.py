@@ -17,14 +17,7 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
   (:func:`register_method`, :func:`available_methods`).
 """
 
-# The rules register themselves when their module is imported; this order is the order of
-# available_methods() and of the demo's table (so the imports are not sorted).
-from . import ci as _ci  # noqa: F401  (registers "ci")
-from . import optimal as _optimal  # noqa: F401  (registers "naive", "optimal")
-from . import pci as _pci  # noqa: F401  (registers "pci")
-from . import ei as _ei  # noqa: F401  (registers "ei")
-from . import pcei as _pcei  # noqa: F401  (registers "pcei")
-from . import bayes as _bayes  # noqa: F401  (registers "bayes")
+from . import _rules  # noqa: F401  (registers the built-in rules, in its explicit order)
 from ._linalg import IllConditionedError, mahalanobis_sq
 from .bayes import bayesian_fusion, sample_joint_covariances
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection

@@ -43,8 +43,10 @@ import numpy as np
 
 from ._linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
 from ._optimize import minimize_convex_simplex
+from ._partial_correlation import NEWTON_RHO_FLOOR as _NEWTON_RHO_FLOOR
+from ._partial_correlation import partial_weights as _partial_weights
+from ._partial_correlation import weight_derivatives as _weight_derivatives
 from ._riccati import propagated_bound
-from .pci import _NEWTON_RHO_FLOOR, _partial_weights, _weight_derivatives
 
 __all__ = ["information_bound", "partial_horizon_delta"]
 

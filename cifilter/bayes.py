@@ -43,7 +43,6 @@ from ._validation import (
     check_scalar,
     restore_style,
 )
-from .registry import register_method
 from .result import FusionResult
 
 __all__ = ["bayesian_fusion", "sample_joint_covariances"]
@@ -667,7 +666,11 @@ def bayesian_fusion(xs, Ps, dof=None, samples=100, rng=None):
     >>> bool(np.all(np.linalg.eigvalsh(r.P - r.info["sample_P_mean"]) > -1e-12))
     True
     """
-    est = as_estimates(xs, Ps)
+    return _bayesian_fusion(as_estimates(xs, Ps), dof, samples, rng)
+
+
+def _bayesian_fusion(est, dof=None, samples=100, rng=None):
+    """The ``"bayes"`` rule on validated estimates (the core of :func:`bayesian_fusion`)."""
     count, n = est.count, est.dim
     dof = float(_default_dof(count, n)) if dof is None else _check_dof(dof, count, n)
     samples = check_int(samples, "samples", low=1)
@@ -704,20 +707,19 @@ def bayesian_fusion(xs, Ps, dof=None, samples=100, rng=None):
     )
 
 
-def _registered_bayes(xs, Ps, dof=None, samples=100, rng=None):
-    return bayesian_fusion(xs, Ps, dof=dof, samples=samples, rng=rng)
-
-
 def _bayes_truth_options(joint, rng):
     # The rule does not use the true joint covariance: it only needs randomness.
     return {"rng": rng}
 
 
-register_method(
-    "bayes",
-    _registered_bayes,
+REGISTRATION = dict(
+    name="bayes",
+    function=bayesian_fusion,
+    core=_bayesian_fusion,
     summary="Monte Carlo MMSE: BLUE averaged over cross-covariances drawn from a Wishart prior",
     reference="Weng & Djurić, journal, Theorem 1, eqs. 18-20, 46-53; EUSIPCO 2012",
     guarantee="none",
     truth_options=_bayes_truth_options,
+    weights="none (matrix gains averaged over the sampled joint covariances)",
 )
+"""The record of the ``"bayes"`` rule (registered by :mod:`cifilter._rules`)."""

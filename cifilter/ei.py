@@ -41,7 +41,6 @@ from ._validation import (
     restore_style,
     vector_style,
 )
-from .registry import register_method
 from .result import FusionResult
 
 __all__ = ["MUTUAL_MEANS", "REGULARIZERS", "ellipsoidal_intersection"]
@@ -657,15 +656,20 @@ def _ei(est, eps, mutual_mean, regularizer):
     return FusionResult(restore_style(x, est.column), P, "ei", None, gains, info)
 
 
+def _ei_core(est, eps=DEFAULT_EPS, mutual_mean="sijs-lazar", regularizer="information"):
+    return _ei(_check_two(est, "ei"), eps, mutual_mean, regularizer)
+
+
 def _registered_ei(xs, Ps, eps=DEFAULT_EPS, mutual_mean="sijs-lazar", regularizer="information"):
-    est = _check_two(as_estimates(xs, Ps), "ei")
-    return _ei(est, eps, mutual_mean, regularizer)
+    return _ei_core(as_estimates(xs, Ps), eps, mutual_mean, regularizer)
 
 
-register_method(
-    "ei",
-    _registered_ei,
+REGISTRATION = dict(
+    name="ei",
+    function=_registered_ei,
+    core=_ei_core,
     summary="Ellipsoidal Intersection: removes the largest admissible common part once",
     reference="Sijs & Lazar 2012; Naveen & Taylor, eqs. 7-8, 11-13",
     guarantee="none",
 )
+"""The record of the ``"ei"`` rule (registered by :mod:`cifilter._rules`)."""

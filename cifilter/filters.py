@@ -4,13 +4,14 @@
 :meth:`FusionMixin.fuse`; constructors, ``predict`` and ``update`` are filterpy's own.
 """
 
+import warnings
+
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter as _FilterpyEKF
 from filterpy.kalman import KalmanFilter as _FilterpyKF
 from filterpy.kalman import UnscentedKalmanFilter as _FilterpyUKF
 
-from ._validation import as_estimates
-from .registry import _fuse, _split_estimate
+from .registry import fuse_estimates, split_estimate
 
 __all__ = ["ExtendedKalmanFilter", "FusionMixin", "KalmanFilter", "UnscentedKalmanFilter"]
 
@@ -65,7 +66,7 @@ def _single_estimates(estimates, labels):
     """
     pairs = []
     for i, item in enumerate(estimates):
-        x, P = _split_estimate(item, i)
+        x, P = split_estimate(item, i, labels)
         try:
             x_shape, P_shape = np.shape(x), np.shape(P)
         except ValueError:  # ragged input: the validation names it
@@ -89,81 +90,16 @@ def _single_estimates(estimates, labels):
     return pairs
 
 
-_MODEL_FIELDS = ("F", "Q", "H", "R", "G")
-
-
-def _future_model(filt, future):
-    """The model (F, Q, H, R, G) of the steps after the fusion: ``future`` or the filter's."""
-    if future is None:
-        missing = [name for name in ("F", "Q", "H", "R")
-                   if not isinstance(getattr(filt, name, None), (np.ndarray, int, float))]
-        if missing:
-            raise ValueError(
-                f"horizon= needs the filter's linear model, but {type(filt).__name__} has no "
-                f"matrix {', '.join(missing)}; pass future=dict(F=..., Q=..., H=..., R=...)"
-            )
-        return {name: getattr(filt, name) for name in ("F", "Q", "H", "R")}
-    if isinstance(future, dict):
-        unknown = sorted(set(future) - set(_MODEL_FIELDS))
-        if unknown:
-            raise ValueError(f"future has unknown entries {unknown}; it takes "
-                             f"{', '.join(_MODEL_FIELDS)}")
-        get = future.get
-    else:
-        def get(name):
-            return getattr(future, name, None)
-    if get("F") is None or get("Q") is None:
-        raise ValueError("future must give at least F and Q (and H, R for measurements)")
-    return {name: get(name) for name in _MODEL_FIELDS}
-
-
-def _fuse_for_horizon(filt, estimates, method, horizon, future, options, labels):
-    """CI or partial CI with the weights chosen for ``horizon`` steps of the filter's model."""
-    from .horizon import horizon_weights  # only filters that look ahead need it
-
-    if horizon is None:
-        raise ValueError("future= describes the steps after the fusion; give horizon= too")
-    if method not in ("ci", "pci"):
-        raise ValueError(f"horizon= chooses the weights of Covariance Intersection and needs "
-                         f"method='ci' (or 'pci' for partial-correlation CI), got "
-                         f"method={method!r}")
-    fixed, accepted = ("omega", {"criterion"}) if method == "ci" else ("delta",
-                                                                       {"criterion", "rho"})
-    if fixed in options:
-        raise ValueError(f"{fixed}= fixes the weights and horizon= chooses them; give one")
-    unknown = sorted(set(options) - accepted)
-    if unknown:
-        raise TypeError(f"method {method!r} with horizon= accepts the option(s) "
-                        f"{', '.join(map(repr, sorted(accepted)))}, got "
-                        f"{', '.join(map(repr, unknown))}")
-    if method == "pci" and options.get("rho") is None:
-        raise ValueError("the 'pci' rule needs a correlation coefficient bound: "
-                         "fuse(..., method='pci', rho=..., horizon=...)")
-    criterion = options.get("criterion", "trace")
-    rho = options.get("rho")
-    model = _future_model(filt, future)
-    stacked = as_estimates([pair[0] for pair in estimates], [pair[1] for pair in estimates],
-                           names=("x", "P"), labels=labels)
-    choice = horizon_weights(stacked.P, model["F"], model["Q"], model["H"], model["R"], horizon,
-                             criterion=criterion, G=model.get("G"), rho=rho)
-    if method == "ci":
-        result = _fuse(estimates, "ci", dict(criterion=criterion, omega=choice.omega), labels)
-    else:
-        result = _fuse(estimates, "pci", dict(rho=rho, delta=choice.omega), labels)
-    info = dict(result.info)
-    info.update({
-        "rule": "horizon",
-        "criterion": choice.info["criterion"],
-        "horizon": choice.info["horizon"],
-        "horizon_value": choice.value,
-        "horizon_value_recursive": choice.info["value_recursive"],
-        f"{fixed}_recursive": choice.info["omega_recursive"],
-        "model": "future" if future is not None else "filter",
-        "iterations": choice.info["iterations"],
-        "converged": choice.info["converged"],
-        "solver": choice.info["solver"],
-    })
-    return result.replace(info=info)
+def _own_model(filt):
+    """The filter's linear model (F, Q, H, R) for ``horizon=`` without ``model=``."""
+    missing = [name for name in ("F", "Q", "H", "R")
+               if not isinstance(getattr(filt, name, None), (np.ndarray, int, float))]
+    if missing:
+        raise ValueError(
+            f"horizon= needs the filter's linear model, but {type(filt).__name__} has no "
+            f"matrix {', '.join(missing)}; pass model=dict(F=..., Q=..., H=..., R=...)"
+        )
+    return {name: getattr(filt, name) for name in ("F", "Q", "H", "R")}
 
 
 class FusionMixin:
@@ -189,7 +125,7 @@ class FusionMixin:
 
     last_fusion = None
 
-    def fuse(self, other, method="ci", *, horizon=None, future=None, **options):
+    def fuse(self, other, method="ci", *, horizon=None, model=None, future=None, **options):
         """Fuse this filter's estimate with other estimates whose correlation is unknown.
 
         The filter's own ``(x, P)`` is the first input of the fusion rule; its ``x`` (and
@@ -209,25 +145,22 @@ class FusionMixin:
             A registered fusion rule (see :func:`cifilter.available_methods`), default
             ``"ci"``.
         horizon : int, optional
-            Only for ``method="ci"`` and ``method="pci"``: choose the weights that minimise
-            the criterion (option ``criterion``: ``"trace"``, ``"det"`` or a weight matrix)
-            of the bound ``horizon`` predict/update steps after the fusion (the batch
-            approach of Ajgl et al. 2014, :func:`cifilter.horizon.horizon_weights`), using
-            the filter's own ``F``, ``Q``, ``H``, ``R`` or the ``future`` model. With
-            ``"pci"`` (and its option ``rho``) the chosen ``delta`` of Wu, Cai & Fu (2018)
-            is applied by :func:`cifilter.partial_ci`. ``horizon=0`` is the ordinary rule
-            (for ``"pci"`` with ``criterion="trace"``, its trace-optimal ``delta``). The
-            choice is recorded in ``last_fusion.info`` (``rule="horizon"``, ``criterion``,
-            ``horizon``, ``horizon_value`` and, for comparison, ``horizon_value_recursive``
-            and ``omega_recursive`` (``"ci"``) or ``delta_recursive`` (``"pci"``): the
-            criterion at the horizon with the weights that are optimal now, and those
-            weights).
-        future : mapping or object, optional
+            Choose the rule's weights for the bound ``horizon`` predict/update steps after
+            the fusion (Ajgl et al. 2014), for the rules that support it (``"ci"``, and
+            ``"pci"`` with ``rho``), using the filter's own ``F``, ``Q``, ``H``, ``R`` or
+            ``model``. This is :func:`cifilter.fuse`'s ``horizon=``: ``info["rule"]`` is
+            ``"horizon"`` and ``info["horizon"]`` holds the choice (``steps``,
+            ``criterion``, ``value``, and for comparison ``value_recursive`` and
+            ``weights_recursive``, the criterion at the horizon with the weights that are
+            optimal now, and those weights). ``horizon=0`` is the ordinary rule.
+        model : mapping or object, optional
             The model of the steps after the fusion, instead of the filter's own: a mapping
             or an object (such as another ``KalmanFilter``) with ``F`` and ``Q`` and
             optionally ``H``, ``R`` (None or absent: no measurements) and ``G``; ``H`` and
             ``R`` may be per-step lists (see :func:`cifilter.horizon.propagate_bound`).
             Needed for filters without matrices ``F``, ``Q``, ``H``, ``R`` (the EKF and UKF).
+        future : mapping or object, optional
+            Former name of ``model`` (deprecated; a ``DeprecationWarning``).
         **options
             Options of the rule (e.g. ``criterion="det"`` or ``omega="fast"`` for
             ``"ci"``).
@@ -245,8 +178,8 @@ class FusionMixin:
             Dimension mismatch, non-finite values, a covariance that is not symmetric
             positive definite, batched inputs, or a bad option value; ``horizon`` with a
             method other than ``"ci"`` and ``"pci"`` or together with ``omega`` (``"ci"``)
-            or ``delta`` (``"pci"``), ``"pci"`` without ``rho``, ``future`` without
-            ``horizon``, a filter without a linear model and no ``future``. Messages name
+            or ``delta`` (``"pci"``), ``"pci"`` without ``rho``, ``model`` without
+            ``horizon``, a filter without a linear model and no ``model``. Messages name
             the estimate: ``"this filter's P"``, ``"other's x"`` or ``"other[i]'s P"`` (for a
             list).
 
@@ -264,7 +197,7 @@ class FusionMixin:
 
         >>> kf.F, kf.H = np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([[1.0, 0.0]])
         >>> result = kf.fuse((np.ones(2), np.diag([4.0, 1.0])), horizon=10)
-        >>> result.info["rule"], result.info["horizon"]
+        >>> result.info["rule"], result.info["horizon"]["steps"]
         ('horizon', 10)
 
         The same with partial-correlation CI for a correlation coefficient bound of 0.5:
@@ -277,11 +210,16 @@ class FusionMixin:
         others = _as_estimate_list(other)
         labels = _labels(1 + len(others), not (len(others) == 1 and others[0] is other))
         estimates = _single_estimates([(self.x, self.P)] + others, labels)
-        if horizon is not None or future is not None:
-            result = _fuse_for_horizon(self, estimates, method, horizon, future, options,
-                                       labels)
-        else:
-            result = _fuse(estimates, method, options, labels)
+        if future is not None:
+            if model is not None:
+                raise ValueError("give model= only (future= is its former name)")
+            warnings.warn("kf.fuse(..., future=) is now model=, as in cifilter.fuse",
+                          DeprecationWarning, stacklevel=2)
+            model = future
+        if horizon is not None and model is None:
+            model = _own_model(self)
+        result = fuse_estimates(estimates, method, options, horizon=horizon, model=model,
+                                labels=labels)
         x_shape = np.shape(self.x)
         x = np.asarray(result.x)
         if x.size != int(np.prod(x_shape)) or np.shape(result.P) != np.shape(self.P):

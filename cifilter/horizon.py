@@ -74,6 +74,8 @@ from typing import Any, Optional
 import numpy as np
 from scipy import linalg as sla
 
+from ._criteria import criterion_value as _criterion_value
+from ._criteria import parse_criterion as _parse_criterion
 from ._linalg import (
     IllConditionedError,
     cho_inverse,
@@ -85,6 +87,9 @@ from ._linalg import (
     symmetrize,
 )
 from ._optimize import minimize_convex_interval, minimize_convex_simplex
+from ._partial_correlation import check_rho as _check_rho
+from ._partial_correlation import effective_rho as _effective_rho
+from ._partial_correlation import partial_weights as _partial_weights
 from ._partial_horizon import information_bound, partial_horizon_delta
 from ._riccati import (
     Terms,
@@ -99,8 +104,7 @@ from ._riccati import (
     update,
 )
 from ._validation import as_covariances, as_float_array, check_covariances, check_int
-from .ci import _criterion_value, _parse_criterion, ci_weights
-from .pci import _check_rho, _effective_rho, _partial_weights
+from .ci import ci_weights
 
 __all__ = [
     "HorizonOmega",
@@ -1140,3 +1144,71 @@ def horizon_study(PA, PB, F, Q, H, R, horizons, criterion="trace", G=None, *, li
         omega_limit=omega_limit,
         rho=None if rho is None else np.broadcast_to(rho, batch_shape + (2,)).copy(),
     )
+
+
+# --------------------------------------------------------------------------- front-door hooks
+def _model_parts(model):
+    """F, Q, H, R, G of ``model``: a mapping or an object with those attributes."""
+    fields = ("F", "Q", "H", "R", "G")
+    if isinstance(model, dict):
+        unknown = sorted(set(model) - set(fields))
+        if unknown:
+            raise ValueError(f"model has unknown entries {unknown}; it takes "
+                             f"{', '.join(fields)}")
+        get = model.get
+    else:
+        def get(name):
+            return getattr(model, name, None)
+    if get("F") is None or get("Q") is None:
+        raise ValueError("model must give at least F and Q (and H, R for measurements)")
+    return tuple(get(name) for name in fields)
+
+
+def _horizon_options(estimates, model, steps, options, fixed, accepted, rho):
+    if fixed in options:
+        raise ValueError(f"{fixed}= fixes the weights and horizon= chooses them; give one")
+    unknown = sorted(set(options) - accepted)
+    if unknown:
+        raise TypeError(f"horizon= accepts the option(s) "
+                        f"{', '.join(map(repr, sorted(accepted)))}, got "
+                        f"{', '.join(map(repr, unknown))}")
+    F, Q, H, R, G = _model_parts(model)
+    criterion = options.get("criterion", "trace")
+    choice = horizon_weights(estimates.P, F, Q, H, R, steps, criterion, G, rho=rho)
+    diagnostics = {
+        "steps": choice.info["horizon"],
+        "criterion": choice.info["criterion"],
+        "value": choice.value,
+        "value_recursive": choice.info["value_recursive"],
+        "weights_recursive": choice.info["omega_recursive"],
+        "iterations": choice.info["iterations"],
+        "converged": choice.info["converged"],
+        "solver": choice.info["solver"],
+    }
+    if "gap" in choice.info:
+        diagnostics["gap"] = choice.info["gap"]
+    return choice.omega, criterion, diagnostics
+
+
+def ci_horizon_options(estimates, model, steps, options):
+    """The ``"ci"`` rule's support of ``fuse(..., horizon=steps, model=model)``.
+
+    Returns the options ``{"criterion": ..., "omega": w}`` with the weights that minimise
+    the criterion of the bound ``steps`` filter steps after the fusion, and the diagnostics
+    of that choice (stored as ``info["horizon"]``).
+    """
+    omega, criterion, diagnostics = _horizon_options(
+        estimates, model, steps, options, "omega", {"criterion"}, None)
+    return {"criterion": criterion, "omega": omega}, diagnostics
+
+
+def pci_horizon_options(estimates, model, steps, options):
+    """The ``"pci"`` rule's support of ``fuse(..., horizon=steps, model=model)``: the
+    horizon-optimal ``delta`` for the given ``rho`` (see :func:`ci_horizon_options`)."""
+    rho = options.get("rho")
+    if rho is None:
+        raise ValueError("the 'pci' rule needs a correlation coefficient bound: "
+                         "fuse(..., method='pci', rho=..., horizon=...)")
+    delta, _, diagnostics = _horizon_options(
+        estimates, model, steps, options, "delta", {"criterion", "rho"}, rho)
+    return {"rho": rho, "delta": delta}, diagnostics

@@ -14,7 +14,6 @@ from ._validation import (
     check_symmetric,
     restore_style,
 )
-from .registry import register_method
 from .result import FusionResult
 
 __all__ = ["naive_fusion", "optimal_fusion"]
@@ -37,7 +36,8 @@ def naive_fusion(xs, Ps):
     Returns
     -------
     FusionResult
-        ``method="naive"``, ``omega=None``, ``gains`` ``K_i = P P_i^-1``.
+        ``method="naive"``, ``weights`` all one (``P^-1 = sum_i P_i^-1``), ``omega=None``,
+        ``gains`` ``K_i = P P_i^-1``.
 
     Raises
     ------
@@ -61,10 +61,15 @@ def naive_fusion(xs, Ps):
     >>> r.x.round(12).tolist(), r.P.round(12).tolist()
     ([1.0], [[0.666666666667]])
     """
-    est = as_estimates(xs, Ps)
-    fused = weighted_fusion(est.x, est.L, np.ones(est.batch_shape + (est.count,)))
+    return _naive_fusion(as_estimates(xs, Ps))
+
+
+def _naive_fusion(est):
+    """The ``"naive"`` rule on validated estimates (the core of :func:`naive_fusion`)."""
+    weights = np.ones(est.batch_shape + (est.count,))
+    fused = weighted_fusion(est.x, est.L, weights)
     x, P, gains = fused.x, fused.P, fused.gains
-    return FusionResult(restore_style(x, est.column), P, "naive", None, gains, {})
+    return FusionResult(restore_style(x, est.column), P, "naive", None, gains, {}, weights)
 
 
 def _mean_layout(xs, dim):
@@ -320,45 +325,55 @@ def optimal_fusion(xs, joint):
     return _optimal(x, column, J, count, n)
 
 
-def _registered_naive(xs, Ps):
-    return naive_fusion(xs, Ps)
-
-
-def _registered_optimal(xs, Ps, joint):
-    count, n = Ps.shape[-3], Ps.shape[-1]
+def _optimal_fusion(est, joint):
+    """The ``"optimal"`` rule on validated estimates: ``joint`` is checked against them."""
+    count, n = est.count, est.dim
     J = _check_joint(joint)
     if J.shape[-2:] != (count * n, count * n):
         raise ValueError(
             f"joint must have shape (..., {count * n}, {count * n}) for {count} estimates of "
             f"dimension {n}, got shape {J.shape}"
         )
-    _batch(Ps.shape[:-3], J.shape[:-2], "the estimates", "joint")
+    _batch(est.batch_shape, J.shape[:-2], "the estimates", "joint")
     J = check_symmetric(J, "joint")
     blocks = np.stack(
         [J[..., i * n:(i + 1) * n, i * n:(i + 1) * n] for i in range(count)], axis=-3
     )
-    scale = np.abs(Ps).max()
-    if not np.allclose(blocks, Ps, rtol=1e-8, atol=1e-12 * scale):
+    scale = np.abs(est.P).max()
+    if not np.allclose(blocks, est.P, rtol=1e-8, atol=1e-12 * scale):
         raise ValueError("the diagonal blocks of joint must equal the covariances of the estimates")
-    return _optimal(xs, False, J, count, n)
+    return _optimal(est.x, est.column, J, count, n)
 
 
 def _optimal_truth_options(joint, rng):
     return {"joint": joint}
 
 
-register_method(
-    "naive",
-    _registered_naive,
+NAIVE_REGISTRATION = dict(
+    name="naive",
+    function=naive_fusion,
+    core=_naive_fusion,
     summary="information-form product; assumes independent errors (double counts otherwise)",
     reference="the Kalman/information filter update",
     guarantee="none",
+    weights="all one: P^-1 = sum_i P_i^-1",
 )
-register_method(
-    "optimal",
-    _registered_optimal,
+"""The record of the ``"naive"`` rule (registered by :mod:`cifilter._rules`)."""
+
+
+def _optimal_with_estimates(xs, Ps, joint):
+    # fuse(..., method="optimal") passes the covariances too; their blocks are checked
+    return _optimal_fusion(as_estimates(xs, Ps), joint)
+
+
+OPTIMAL_REGISTRATION = dict(
+    name="optimal",
+    function=_optimal_with_estimates,
+    core=_optimal_fusion,
     summary="best linear unbiased fusion with the known joint covariance (needs joint=)",
     reference="Weng & Djurić, journal, eqs. 18-20; EUSIPCO 2012, eqs. 4-6",
     guarantee="exact",
     truth_options=_optimal_truth_options,
+    weights="none (matrix gains from the joint covariance)",
 )
+"""The record of the ``"optimal"`` rule (registered by :mod:`cifilter._rules`)."""

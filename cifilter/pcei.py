@@ -57,7 +57,6 @@ from .ei import (
     to_original,
     whiten,
 )
-from .registry import register_method
 from .result import FusionResult
 
 __all__ = ["pc_ellipsoidal_intersection"]
@@ -712,16 +711,23 @@ def _pcei(est, alpha, eps, mutual_mean, regularizer, tol, max_iter):
     return FusionResult(restore_style(x, est.column), P, "pcei", None, gains, out)
 
 
+def _pcei_core(est, alpha=0.05, eps=DEFAULT_EPS, mutual_mean="sijs-lazar",
+               regularizer="information", tol=1e-9, max_iter=300):
+    return _pcei(_check_two(est, "pcei"), alpha, eps, mutual_mean, regularizer, tol, max_iter)
+
+
 def _registered_pcei(xs, Ps, alpha=0.05, eps=DEFAULT_EPS, mutual_mean="sijs-lazar",
-                     regularizer="information"):
-    est = _check_two(as_estimates(xs, Ps), "pcei")
-    return _pcei(est, alpha, eps, mutual_mean, regularizer, 1e-9, 300)
+                     regularizer="information", tol=1e-9, max_iter=300):
+    return _pcei_core(as_estimates(xs, Ps), alpha, eps, mutual_mean, regularizer, tol,
+                      max_iter)
 
 
-register_method(
-    "pcei",
-    _registered_pcei,
+REGISTRATION = dict(
+    name="pcei",
+    function=_registered_pcei,
+    core=_pcei_core,
     summary="probabilistically conservative EI: common part bounded by a chi-square test",
     reference="Naveen & Taylor, eqs. 17-19; Sijs & Lazar 2012",
     guarantee="none",
 )
+"""The record of the ``"pcei"`` rule (registered by :mod:`cifilter._rules`)."""

@@ -16,239 +16,22 @@ Theorem 5 bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i`` (see
 
 import numpy as np
 
-from ._information import (
-    checked_cholesky,
-    information_factors,
-    lower_inverse_stack,
-    squared_norms,
-    trace_curvature,
-    weighted_fusion,
+from ._information import checked_cholesky, lower_inverse_stack, squared_norms, weighted_fusion
+from ._partial_correlation import (
+    alternating_delta,
+    check_rho,
+    effective_rho,
+    newton_delta,
+    partial_weights,
+    relative_gap,
 )
-from ._linalg import symmetrize
-from ._optimize import minimize_convex_simplex
-from ._validation import (
-    as_estimates,
-    as_float_array,
-    check_finite,
-    check_int,
-    check_scalar,
-    check_weights,
-    restore_style,
-)
+from ._validation import as_estimates, as_float_array, check_int, check_scalar, check_weights
 from .bounds import correlation_bound
-from .registry import register_method
 from .result import FusionResult
 
 __all__ = ["partial_ci"]
 
 _SOLVERS = ("newton", "alternating")
-
-
-def _check_rho(rho, count, batch_shape):
-    """``rho`` as an array (..., N) in [0, 1] broadcast to ``batch_shape + (N,)``."""
-    array = as_float_array(rho, "rho")
-    check_finite(array, "rho")
-    if array.ndim > 0 and array.shape[-1] not in (1, count):
-        raise ValueError(
-            f"rho must be a scalar or have shape (..., {count}) (one bound per estimate) or "
-            f"(..., 1) (one per problem), got shape {array.shape}"
-        )
-    if np.any((array < 0.0) | (array > 1.0)):
-        bad = array[(array < 0.0) | (array > 1.0)].ravel()[0]
-        raise ValueError(f"rho must lie in [0, 1], got {bad}")
-    if array.ndim == 0:
-        array = array[None]
-    try:
-        return np.array(np.broadcast_to(array, batch_shape + (count,)))
-    except ValueError:
-        raise ValueError(
-            f"rho of shape {array.shape} does not broadcast against the batch shape "
-            f"{batch_shape} of the estimates"
-        ) from None
-
-
-def _effective_rho(rho):
-    """The bounds the rule uses: for two estimates ``sqrt(rho_1 rho_2)`` for both.
-
-    Definition 2 for two vectors is Lemma 3's condition with ``rho = sqrt(rho_1 rho_2)``,
-    and Theorem 3 (the trace-minimal bound) takes one common ``rho``.
-    """
-    if rho.shape[-1] == 2:
-        return np.sqrt(rho[..., :1] * rho[..., 1:]).repeat(2, axis=-1)
-    return rho
-
-
-def _partial_weights(delta, rho):
-    """Eq. (24): ``w_i = delta_i / (rho_i + (1 - rho_i) delta_i)``, and 1 where ``rho_i = 0``.
-
-    This is ``w_i^-1 = rho_i / delta_i + 1 - rho_i`` written without dividing by
-    ``delta_i``, so that a weight driven to ``delta_i = 0`` gives ``w_i = 0`` (the estimate
-    is ignored) unless ``rho_i = 0`` (uncorrelated: ``w_i = 1`` whatever ``delta_i``).
-    """
-    positive = rho > 0.0
-    denominator = np.where(positive, rho + (1.0 - rho) * delta, 1.0)
-    return np.where(positive, delta / denominator, 1.0)
-
-
-def _weight_derivatives(delta, rho):
-    """First and second derivatives of eq. (24) in ``delta_i``.
-
-    ``w_i' = rho_i / (rho_i + (1 - rho_i) delta_i)^2`` and
-    ``w_i'' = -2 rho_i (1 - rho_i) / (rho_i + (1 - rho_i) delta_i)^3``: the factors of
-    ``d Delta / d delta_i`` in the proof of Lemma 8, where the paper omits the numerator
-    ``rho_i`` (a misprint; the convexity argument is unaffected). Both are 0 for
-    ``rho_i = 0``. They are formed from ``rho_i / base_i <= 1`` so that tiny ``rho_i`` and
-    ``delta_i`` do not underflow to a division by zero.
-    """
-    positive = rho > 0.0
-    base = np.where(positive, rho + (1.0 - rho) * delta, 1.0)
-    ratio = np.where(positive, rho / base, 0.0)
-    with np.errstate(over="ignore"):  # rho_i, delta_i ~ 1e-200: a huge gradient is right
-        first = ratio / base
-        second = -2.0 * (1.0 - rho) * first / base
-    return first, second
-
-
-def _bound_and_spread(delta, rho, L_inv):
-    """``w`` (24), the factors of ``P`` (33) and ``Tr(P P_i^-1 P)`` for every estimate.
-
-    ``Tr(P P_i^-1 P) = ||B_i||_F^2`` with ``B_i = P L_i^-T`` (see
-    :func:`cifilter._information.information_factors`): a sum of squares, accurate to
-    rounding whatever the conditioning.
-    """
-    w = _partial_weights(delta, rho)
-    factors = information_factors(L_inv, w)
-    spread = squared_norms(factors.B)
-    return w, factors, spread
-
-
-def _relative_gap(delta, rho, trace, spread):
-    """Certified bound on ``(Tr P(delta) - min Tr P) / Tr P`` (a Frank-Wolfe gap).
-
-    ``Tr P(delta)`` is convex on the simplex (Lemma 8; also for rho_i in {0, 1}), so with
-    its gradient ``g_i = -w_i' Tr(P P_i^-1 P)``,
-    ``min Tr P >= Tr P - (sum_i g_i delta_i - min_i g_i)``.
-    """
-    first, _ = _weight_derivatives(delta, rho)
-    g = -first * spread
-    # g_i delta_i = -Tr(P P_i^-1 P) w_i rho_i / base_i, finite even where g_i overflows
-    positive = rho > 0.0
-    base = np.where(positive, rho + (1.0 - rho) * delta, 1.0)
-    along = -spread * _partial_weights(delta, rho) * np.where(positive, rho / base, 0.0)
-    return np.maximum(along.sum(axis=-1) - g.min(axis=-1), 0.0) / trace
-
-
-def _alternating_projection(L_inv, rho, tol, max_iter, start=None):
-    """Algorithm 2 (and Algorithm 1, its two-estimate case), batched.
-
-    Starting from ``delta_i = 1/N`` (Step 1) it repeats, for all unfinished problems at
-    once: Step 2, ``w`` from eq. (24), ``P = (sum_i w_i P_i^-1)^-1`` (33) and
-    ``K_i = w_i P P_i^-1`` (34); Step 3, ``delta`` from eq. (25),
-    ``delta_i proportional to sqrt(rho_i Tr(K_i P_i K_i^T))``, with
-    ``Tr(K_i P_i K_i^T) = w_i^2 Tr(P P_i^-1 P)``. Each sweep is a block-coordinate descent
-    step of ``Tr(sum_i w_i^-1 K_i P_i K_i^T)`` over ``K`` (Theorem 5) and ``delta``
-    (Lemma 7), so the trace never increases (Theorems 4 and 6).
-
-    A problem stops when no ``delta_i`` moved by more than ``tol`` in the last sweep and
-    the certified relative gap to the minimum trace is below ``tol``; the second test
-    keeps a slowly creeping ``delta`` (linear convergence with a rate near one) from
-    passing for converged.
-
-    ``start`` replaces Step 1 (used to check a Newton solution). Returns ``delta``
-    (..., N), ``iterations`` (...), the number of sweeps (Steps 2-3), and ``converged``.
-    """
-    batch, count = rho.shape[:-1], rho.shape[-1]
-    size = int(np.prod(batch, dtype=int))
-    L_inv = L_inv.reshape((size,) + L_inv.shape[-3:])
-    rho = rho.reshape(size, count)
-    if start is None:
-        delta = np.full((size, count), 1.0 / count)
-    else:
-        delta = np.array(start, dtype=float).reshape(size, count)
-    iterations = np.zeros(size, dtype=int)
-    converged = np.zeros(size, dtype=bool)
-    for _ in range(max_iter):
-        active = np.flatnonzero(~converged)
-        if active.size == 0:
-            break
-        d, r = delta[active], rho[active]
-        w, factors, spread = _bound_and_spread(d, r, L_inv[active])  # Step 2
-        gap = _relative_gap(d, r, squared_norms(factors.R_inv), spread)
-        # sqrt(rho_i Tr(K_i P_i K_i^T)), factored so that a tiny rho_i does not underflow
-        root = np.sqrt(r) * w * np.sqrt(spread)
-        total = root.sum(axis=-1, keepdims=True)
-        # Every rho_i = 0: delta plays no role (Remark 4); keep it.
-        new = np.where(total > 0.0, root / np.where(total > 0.0, total, 1.0), d)  # (25)
-        change = np.abs(new - d).max(axis=-1)
-        delta[active] = new
-        iterations[active] += 1
-        converged[active] = (change <= tol) & (gap <= tol)
-    return delta.reshape(batch + (count,)), iterations.reshape(batch), converged.reshape(batch)
-
-
-_NEWTON_RHO_FLOOR = 1e-8
-
-
-def _newton(L_inv, rho, tol, max_iter):
-    """Minimise ``Tr P(delta)`` (eq. (35)) by the active-set Newton method on the simplex.
-
-    Gradient ``g_i = -w_i' Tr(P I_i P)`` and Hessian
-    ``H_ij = 2 w_i' w_j' Tr(P I_i P I_j P) - [i = j] w_i'' Tr(P I_i P)`` with
-    ``I_i = P_i^-1`` and the derivatives of eq. (24) (see :func:`_weight_derivatives`),
-    formed from the factors ``B_i = P L_i^-T`` and ``C_i = R^-1 L_i^-T``:
-    ``Tr(P I_i P) = ||B_i||^2`` and ``Tr(P I_i P I_j P) = Tr(B_i^T B_j C_j^T C_i)``. Optima on
-    the boundary of the simplex (an ignored estimate) are exact. Each problem stops when
-    its certified gap (:func:`_relative_gap`) is at most ``tol``.
-
-    Positive bounds below ``_NEWTON_RHO_FLOOR`` are raised to it for the Newton phase
-    only: near the optimum ``delta_i ~ sqrt(rho_i)`` the curvature grows like
-    ``rho_i^(-1/2)`` and would swamp the other directions (or overflow). Problems whose
-    gap under the true bounds is then above ``tol`` continue with the sweeps of Algorithm 2
-    (:func:`_alternating_projection`), whose multiplicative step (25) moves such a
-    ``delta_i`` to its scale at once. Returns ``delta`` and the iterations (Newton steps
-    plus sweeps) per problem.
-    """
-    true_rho = rho
-    batch, count = rho.shape[:-1], rho.shape[-1]
-    size = int(np.prod(batch, dtype=int))
-    flat_L_inv = L_inv.reshape((size,) + L_inv.shape[-3:])
-    floored = np.where(rho > 0.0, np.maximum(rho, _NEWTON_RHO_FLOOR), 0.0).reshape(size, count)
-
-    def objective(delta, index):
-        w = _partial_weights(delta, floored[index])
-        R_inv = information_factors(flat_L_inv[index], w).R_inv
-        return squared_norms(R_inv)
-
-    def evaluate(delta, index):
-        r = floored[index]
-        _, factors, spread = _bound_and_spread(delta, r, flat_L_inv[index])
-        first, second = _weight_derivatives(delta, r)
-        curvature = trace_curvature(factors)  # Tr(P I_i P I_j P)
-        H = 2.0 * first[..., :, None] * first[..., None, :] * curvature
-        H = H - (second * spread)[..., None] * np.eye(count)
-        trace = squared_norms(factors.R_inv)
-        return trace, -first * spread, symmetrize(H)
-
-    delta, steps, _ = minimize_convex_simplex(
-        evaluate, objective, count, (size,), xtol=tol, max_iter=max_iter, gtol=tol,
-        subset=True,
-    )
-    delta, steps = delta.reshape(batch + (count,)), steps.reshape(batch)
-    _, factors, spread = _bound_and_spread(delta, true_rho, L_inv)
-    trace = squared_norms(factors.R_inv)
-    redo = (_relative_gap(delta, true_rho, trace, spread) > tol).reshape(-1)
-    steps = np.array(steps).reshape(-1)
-    if redo.any():
-        size = steps.size
-        flat = delta.reshape(size, count).copy()
-        more, sweeps, _ = _alternating_projection(
-            L_inv.reshape((size,) + L_inv.shape[-3:])[redo],
-            true_rho.reshape(size, count)[redo], tol, max_iter, start=flat[redo],
-        )
-        flat[redo] = more
-        steps[redo] += sweeps
-        delta = flat.reshape(delta.shape)
-    return delta, steps.reshape(batch)
 
 
 def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=None):
@@ -318,15 +101,16 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=N
     -------
     FusionResult
         ``x`` (..., n) or (..., n, 1) in the style of the first mean, ``P`` (..., n, n),
-        ``omega`` (..., N) the weights ``w_i`` (they do not sum to one unless ``rho = 1``),
-        ``gains`` (..., N, n, n) the ``K_i`` (they sum to the identity), and ``info`` with
-        ``delta`` (..., N), ``gamma`` (...; two estimates only, ``delta_1 = 1/(1+gamma)``),
-        ``rho`` (..., N) as used (for two estimates ``sqrt(rho_1 rho_2)`` twice),
-        ``iterations`` and ``converged`` per problem, ``value`` (the trace of ``P``),
-        ``gap`` (a certified bound on the relative excess of ``Tr(P)`` over its minimum),
-        ``rule`` (``"optimal"``, or ``"fixed"`` for a given ``delta``), and for the optimal
-        ``delta`` also ``solver`` and ``algorithm`` (1 or 2, the paper's algorithm for this
-        N).
+        ``weights`` (..., N) the ``w_i`` of eq. (24) (they do not sum to one unless
+        ``rho = 1``; ``omega`` is None: the rule's own parameter is ``delta``), ``gains``
+        (..., N, n, n) the ``K_i`` (they sum to the identity), and ``info`` with ``delta``
+        (..., N), ``gamma`` (...; two estimates only, ``delta_1 = 1/(1+gamma)``), ``rho``
+        (..., N) as used (for two estimates ``sqrt(rho_1 rho_2)`` twice), ``value`` (the
+        trace of ``P``), ``gap`` (a certified bound on the relative excess of ``Tr(P)`` over
+        its minimum, also for a given ``delta``), ``rule`` (``"optimal"``, or ``"fixed"``
+        for a given ``delta``), and for the optimal ``delta`` also ``iterations`` and
+        ``converged`` per problem, ``solver`` and ``algorithm`` (1 or 2, the paper's
+        algorithm for this N).
 
     Raises
     ------
@@ -391,24 +175,34 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=N
     A given ``delta`` (here the optimal one, so the result is the same):
 
     >>> r = partial_ci([np.zeros(2)] * 2, [Pa, Pb], 0.5, delta=[0.5, 0.5])
-    >>> r.info["rule"], r.omega.round(6).tolist(), round(float(np.trace(r.P)), 9)
+    >>> r.info["rule"], r.weights.round(6).tolist(), round(float(np.trace(r.P)), 9)
     ('fixed', [0.666667, 0.666667], 2.4)
     """
     est = as_estimates(xs, Ps)
-    rho = _check_rho(rho, est.count, est.batch_shape)
+    return _partial_ci(est, rho, tol, max_iter, solver=solver, delta=delta)
+
+
+def _partial_ci(est, rho=None, tol=1e-10, max_iter=100, *, solver="newton", delta=None):
+    """The ``"pci"`` rule on validated estimates (the core of :func:`partial_ci`)."""
+    if rho is None:
+        raise ValueError(
+            "the 'pci' rule needs a correlation coefficient bound: fuse(..., method='pci', "
+            "rho=...) with rho in [0, 1] (see cifilter.bounds.correlation_bound)"
+        )
+    rho = check_rho(rho, est.count, est.batch_shape)
     tol = check_scalar(tol, "tol", low=0.0, low_open=True)
     max_iter = check_int(max_iter, "max_iter", low=1)
     if solver not in _SOLVERS:
         raise ValueError(f"solver must be one of {', '.join(map(repr, _SOLVERS))}, got {solver!r}")
     two = est.count == 2
-    used = _effective_rho(rho)
+    used = effective_rho(rho)
     L_inv = lower_inverse_stack(est.L)
     converged = None
     if delta is None:
         if solver == "newton":
-            delta, iterations = _newton(L_inv, used, tol, max_iter)
+            delta, iterations = newton_delta(L_inv, used, tol, max_iter)
         else:
-            delta, iterations, converged = _alternating_projection(L_inv, used, tol, max_iter)
+            delta, iterations, converged = alternating_delta(L_inv, used, tol, max_iter)
         info = {"rule": "optimal", "iterations": iterations, "solver": solver,
                 "algorithm": 1 if two else 2}
     else:
@@ -419,33 +213,24 @@ def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=N
             raise ValueError(f"delta of shape {fixed.shape} does not broadcast against the "
                              f"batch shape {est.batch_shape} of the estimates") from None
         info = {"rule": "fixed"}
-    weights = _partial_weights(delta, used)
+    weights = partial_weights(delta, used)
     fused = weighted_fusion(est.x, est.L, weights, L_inv)
     checked_cholesky(fused.P, "the fused covariance")
+    x, P, gains = fused.x, fused.P, fused.gains
     spread = squared_norms(fused.factors.B)
     trace = squared_norms(fused.factors.R_inv)
     with np.errstate(over="ignore", invalid="ignore"):  # a fixed delta_i = 0, rho_i ~ 1e-300
-        gap = _relative_gap(delta, used, trace, spread)
+        gap = relative_gap(delta, used, trace, spread)
     if info["rule"] == "optimal":
         # Newton: the certified gap decides; the alternating projections also require
         # delta at rest (the paper's test), which implies nothing beyond the gap.
         info["converged"] = (gap <= tol) if converged is None else converged
-    x, P, gains = fused.x, fused.P, fused.gains
     info.update(delta=delta, rho=used, value=np.trace(P, axis1=-2, axis2=-1), gap=gap)
     if two:
         with np.errstate(divide="ignore"):
             info["gamma"] = delta[..., 1] / delta[..., 0]  # delta_1 = 1 / (1 + gamma)
-    return FusionResult(restore_style(x, est.column), P, "pci", weights, gains, info)
-
-
-def _registered_pci(xs, Ps, rho=None, tol=1e-10, max_iter=100, solver="newton",
-                    delta=None):
-    if rho is None:
-        raise ValueError(
-            "the 'pci' rule needs a correlation coefficient bound: fuse(..., method='pci', "
-            "rho=...) with rho in [0, 1] (see cifilter.bounds.correlation_bound)"
-        )
-    return partial_ci(xs, Ps, rho, tol=tol, max_iter=max_iter, solver=solver, delta=delta)
+    x = x[..., None] if est.column else x
+    return FusionResult(x, P, "pci", None, gains, info, weights)
 
 
 def _truth_rho(joint):
@@ -471,11 +256,14 @@ def _pci_truth_options(joint, rng):
     return {"rho": _truth_rho(joint)[..., None]}
 
 
-register_method(
-    "pci",
-    _registered_pci,
+REGISTRATION = dict(
+    name="pci",
+    function=partial_ci,
+    core=_partial_ci,
     summary="partial-correlation CI given a correlation coefficient bound rho (needs rho=)",
     reference="Wu, Cai & Fu 2018, Theorems 3 and 5, Algorithms 1 and 2",
     guarantee="bound",
     truth_options=_pci_truth_options,
+    weights="w_i = delta_i / (rho_i + (1 - rho_i) delta_i), eq. (24); they do not sum to one",
 )
+"""The record of the ``"pci"`` rule (registered by :mod:`cifilter._rules`)."""

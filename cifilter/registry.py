@@ -1,12 +1,15 @@
-"""The registry of fusion rules and :func:`fuse`, the single entry point that dispatches to them.
+"""The registry of fusion rules and :func:`fuse`, the front door that dispatches to them.
 
-Each fusion family registers its rules when its module is imported. A rule is a function
-``rule(xs, Ps, **options) -> FusionResult`` that receives already validated arrays
-``xs`` (..., N, n) and ``Ps`` (..., N, n, n) with a common batch shape.
+:func:`fuse` validates the estimates once (shapes, finiteness, symmetry, positive
+definiteness, with the Cholesky factors kept) and hands them to the rule's *core*, a
+function that trusts its input; the rule's public function (for instance
+:func:`cifilter.covariance_intersection`) validates and calls the same core. Options such
+as ``horizon=`` are handled here for every rule whose record declares them. The built-in
+rules are registered, in an explicit order, by :mod:`cifilter._rules`.
 """
 
 import inspect
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import numpy as np
@@ -15,6 +18,22 @@ from ._validation import as_estimates, restore_style
 from .result import FusionResult
 
 __all__ = ["FusionMethod", "available_methods", "fuse", "get_method", "register_method"]
+
+
+def _option_signature(function, skip):
+    """(accepted, required, any): the rule's option names after its ``skip`` leading
+    arguments, the required ones, and whether it takes ``**options``; None if unknown."""
+    try:
+        parameters = inspect.signature(function).parameters
+    except (TypeError, ValueError):  # builtins without a signature: let the call decide
+        return None
+    options = [
+        p for p in list(parameters.values())[skip:]
+        if p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    ]
+    required = tuple(p.name for p in options if p.default is inspect.Parameter.empty)
+    var_keyword = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values())
+    return tuple(p.name for p in options), required, var_keyword
 
 
 @dataclass(frozen=True)
@@ -28,7 +47,7 @@ class FusionMethod:
     name : str
         Name used as ``fuse(..., method=name)``.
     function : callable
-        ``function(xs, Ps, **options) -> FusionResult`` on validated arrays.
+        ``function(xs, Ps, **options) -> FusionResult``, the rule's public function.
     summary : str
         One line describing the rule.
     reference : str
@@ -42,6 +61,22 @@ class FusionMethod:
         ``truth_options(joint, rng) -> dict``: the options the rule needs in a simulation
         where the true joint error covariance ``joint`` (..., N*n, N*n) is known. The demo
         and the benchmarks use it to run every registered rule without knowing it.
+    core : callable or None
+        ``core(estimates, **options) -> FusionResult`` on validated estimates (a
+        :class:`cifilter._validation.Estimates`: means ``x`` (..., N, n), covariances ``P``
+        (..., N, n, n), their Cholesky factors ``L`` and the caller's vector style
+        ``column``); it returns ``x`` in the caller's style. :func:`fuse` calls it when
+        given, so the estimates are validated once; otherwise it calls ``function``.
+    horizon : callable or None
+        ``horizon(estimates, model, steps, options) -> (core_options, info)`` when the rule
+        can choose its weights for the bound ``steps`` filter steps after the fusion
+        (``fuse(..., horizon=steps, model=...)``): the options to fuse with (the chosen
+        weights) and the diagnostics stored as ``info["horizon"]``.
+    weights : str
+        What ``FusionResult.weights`` holds for this rule (for the documentation).
+    signature : tuple or None
+        The option names the rule accepts, those it requires and whether it takes any
+        keyword (computed from ``core`` or ``function`` when None, once).
 
     Examples
     --------
@@ -49,6 +84,8 @@ class FusionMethod:
     >>> record = get_method("optimal")
     >>> record.guarantee, sorted(record.options_given_truth("J", rng=None))
     ('exact', ['joint'])
+    >>> get_method("ci").horizon is not None, get_method("ei").horizon is None
+    (True, True)
     """
 
     name: str
@@ -57,6 +94,16 @@ class FusionMethod:
     reference: str = ""
     guarantee: str = "none"
     truth_options: Optional[Callable] = None
+    core: Optional[Callable] = None
+    horizon: Optional[Callable] = None
+    weights: str = ""
+    signature: Optional[tuple] = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self):
+        if self.signature is None:  # computed once: inspect.signature is slow per call
+            signature = (_option_signature(self.core, 1) if self.core is not None
+                         else _option_signature(self.function, 2))
+            object.__setattr__(self, "signature", signature)
 
     def options_given_truth(self, joint, rng):
         """Options for this rule in a simulation where the joint covariance is known.
@@ -87,7 +134,7 @@ _REGISTRY = {}
 
 
 def register_method(name, function, *, summary="", reference="", guarantee="none",
-                    truth_options=None, replace=False):
+                    truth_options=None, core=None, horizon=None, weights="", replace=False):
     """Register a fusion rule so that ``fuse(..., method=name)`` can use it.
 
     Parameters
@@ -95,8 +142,9 @@ def register_method(name, function, *, summary="", reference="", guarantee="none
     name : str
         The method name.
     function : callable
-        ``function(xs, Ps, **options) -> FusionResult``. ``xs`` has shape (..., N, n) and
-        ``Ps`` shape (..., N, n, n); both are validated copies with one batch shape.
+        ``function(xs, Ps, **options) -> FusionResult``. Called by :func:`fuse` (when no
+        ``core`` is given) with ``xs`` of shape (..., N, n) and ``Ps`` (..., N, n, n),
+        validated copies with one batch shape.
     summary, reference : str, optional
         One-line description and source, shown by ``python -m cifilter methods``.
     guarantee : {"bound", "exact", "none"}, optional
@@ -104,6 +152,13 @@ def register_method(name, function, *, summary="", reference="", guarantee="none
     truth_options : callable, optional
         ``truth_options(joint, rng) -> dict`` giving the options the rule needs when the
         true joint covariance is known (used by the demo).
+    core : callable, optional
+        ``core(estimates, **options) -> FusionResult`` on already validated estimates
+        (see :class:`FusionMethod`); :func:`fuse` then calls it instead of ``function``.
+    horizon : callable, optional
+        The rule's support of ``fuse(..., horizon=, model=)`` (see :class:`FusionMethod`).
+    weights : str, optional
+        What the result's ``weights`` are for this rule (documentation).
     replace : bool, optional
         Allow replacing an existing registration (default False).
 
@@ -115,7 +170,8 @@ def register_method(name, function, *, summary="", reference="", guarantee="none
     Raises
     ------
     TypeError
-        If ``name`` is not a string or ``function`` is not callable.
+        If ``name`` is not a string or ``function``, ``core``, ``horizon`` or
+        ``truth_options`` is not callable.
     ValueError
         If ``name`` is empty, already registered and ``replace`` is False, or
         ``guarantee`` is not one of the three values.
@@ -140,11 +196,14 @@ def register_method(name, function, *, summary="", reference="", guarantee="none
         raise TypeError(f"function must be callable, got {type(function).__name__}")
     if guarantee not in GUARANTEES:
         raise ValueError(f"guarantee must be one of {GUARANTEES}, got {guarantee!r}")
-    if truth_options is not None and not callable(truth_options):
-        raise TypeError("truth_options must be callable or None")
+    for argument, value in (("truth_options", truth_options), ("core", core),
+                            ("horizon", horizon)):
+        if value is not None and not callable(value):
+            raise TypeError(f"{argument} must be callable or None")
     if name in _REGISTRY and not replace:
         raise ValueError(f"a fusion method named {name!r} is already registered")
-    record = FusionMethod(name, function, summary, reference, guarantee, truth_options)
+    record = FusionMethod(name, function, summary, reference, guarantee, truth_options,
+                          core, horizon, weights)
     _REGISTRY[name] = record
     return record
 
@@ -206,47 +265,41 @@ def _check_options(record, options):
     reports required options that are missing (naming them and the method), both as
     ``TypeError`` before the rule runs.
     """
-    try:
-        parameters = inspect.signature(record.function).parameters
-    except (TypeError, ValueError):  # builtins without a signature: let the call decide
+    if record.signature is None:
         return
-    options_parameters = [
-        p for p in list(parameters.values())[2:]
-        if p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
-    ]
-    missing = [
-        p.name for p in options_parameters
-        if p.default is inspect.Parameter.empty and p.name not in options
-    ]
+    accepted, required, var_keyword = record.signature
+    missing = [name for name in required if name not in options]
     if missing:
         example = ", ".join(f"{name}=..." for name in missing)
         raise TypeError(
             f"method {record.name!r} needs the option(s) {', '.join(map(repr, missing))}: "
             f"fuse(estimates, method={record.name!r}, {example})"
         )
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+    if var_keyword:
         return
-    accepted = [p.name for p in options_parameters]
-    unknown = sorted(set(options) - set(accepted))
+    unknown = [name for name in options if name not in accepted]
     if unknown:
         raise TypeError(
-            f"method {record.name!r} does not accept option(s) {', '.join(map(repr, unknown))}; "
-            f"it accepts {', '.join(map(repr, accepted)) or 'no options'}"
+            f"method {record.name!r} does not accept option(s) "
+            f"{', '.join(map(repr, sorted(unknown)))}; it accepts "
+            f"{', '.join(map(repr, accepted)) or 'no options'}"
         )
 
 
-def _split_estimate(item, index):
+def split_estimate(item, index, labels=None):
+    """``(x, P)`` of one estimate: an ``(x, P)`` pair or an object with ``.x`` and ``.P``."""
     if hasattr(item, "x") and hasattr(item, "P"):
         return item.x, item.P
     if isinstance(item, (tuple, list)) and len(item) == 2:
         return item[0], item[1]
+    where = f"estimates[{index}]" if labels is None else labels[index]
     raise TypeError(
-        f"estimates[{index}] must be an (x, P) pair or an object with .x and .P attributes "
+        f"{where} must be an (x, P) pair or an object with .x and .P attributes "
         f"(such as a filterpy filter), got {type(item).__name__}"
     )
 
 
-def fuse(estimates, method="ci", **options):
+def fuse(estimates, method="ci", *, horizon=None, model=None, **options):
     """Fuse estimates with a registered rule.
 
     Parameters
@@ -257,6 +310,20 @@ def fuse(estimates, method="ci", **options):
         batch axes fuse many problems at once and broadcast against each other.
     method : str, optional
         A registered rule (see :func:`available_methods`); default ``"ci"``.
+    horizon : int, optional
+        Choose the rule's weights for the bound ``horizon`` predict/update steps of
+        ``model`` after the fusion (Ajgl et al. 2014; :mod:`cifilter.horizon`), for rules
+        whose record declares it (``"ci"``, and ``"pci"`` with ``rho``). The rule then fuses
+        with those weights; ``info["rule"]`` is ``"horizon"``, ``info["horizon"]`` holds the
+        horizon solver's diagnostics (``steps``, ``criterion``, ``value``,
+        ``value_recursive``, ``weights_recursive``, ``iterations``, ``converged``, ``gap``,
+        ``solver``) and ``info["converged"]``, ``info["iterations"]`` and ``info["gap"]`` are
+        those of that choice. ``horizon=0`` is the rule's own optimum.
+    model : mapping or object, optional
+        The model of the steps after the fusion, needed with ``horizon``: a mapping or an
+        object (such as a ``KalmanFilter``) with ``F`` and ``Q`` and optionally ``H``, ``R``
+        (None or absent: no measurements) and ``G``; ``H`` and ``R`` may be per-step lists
+        (see :func:`cifilter.horizon.propagate_bound`).
     **options
         Options of the rule, for instance ``criterion="det"`` for ``"ci"`` or ``joint=``
         for ``"optimal"``.
@@ -270,8 +337,9 @@ def fuse(estimates, method="ci", **options):
     ------
     ValueError
         Unknown method (the message lists the registered ones), fewer than two estimates,
-        bad shapes, non-finite, non-symmetric or non-positive-definite covariances, or an
-        option out of range.
+        bad shapes, non-finite, non-symmetric or non-positive-definite covariances, an
+        option out of range, ``horizon`` for a rule that does not support it or without
+        ``model``, ``model`` without ``horizon``.
     TypeError
         An estimate of the wrong kind, non-numeric, boolean or complex values, an option
         the rule does not accept or a required option that is missing (for instance
@@ -288,30 +356,50 @@ def fuse(estimates, method="ci", **options):
     >>> a = (np.array([1.0, 0.0]), np.diag([1.0, 4.0]))
     >>> b = (np.array([0.0, 1.0]), np.diag([4.0, 1.0]))
     >>> r = fuse([a, b], method="ci")
-    >>> float(r.omega[0]), float(np.trace(r.P))
+    >>> float(r.weights[0]), float(np.trace(r.P))
     (0.5, 3.2)
+
+    The weights that are best for the bound after five steps of a local filter:
+
+    >>> model = dict(F=np.array([[1.0, 1.0], [0.0, 1.0]]), Q=0.1 * np.eye(2),
+    ...              H=np.array([[1.0, 0.0]]), R=np.eye(1))
+    >>> r = fuse([a, b], method="ci", horizon=5, model=model)
+    >>> r.info["rule"], r.info["horizon"]["steps"], bool(r.info["converged"])
+    ('horizon', 5, True)
     """
-    return _fuse(estimates, method, options)
+    return fuse_estimates(estimates, method, options, horizon=horizon, model=model)
 
 
-def _fuse(estimates, method, options, labels=None):
-    """:func:`fuse` with optional labels of the estimates for the messages.
+def fuse_estimates(estimates, method, options, *, horizon=None, model=None, labels=None):
+    """:func:`fuse` with the options as a mapping and optional labels for the messages.
 
     With ``labels`` (one string per estimate, e.g. ``("this filter", "other")``) messages
-    say ``"other's P"``; without, ``"estimates' P[1]"``.
+    say ``"other's P"``; without, ``"estimates' P[1]"``. The filter classes call this.
     """
     record = get_method(method)
     if isinstance(estimates, (str, bytes)) or not hasattr(estimates, "__len__"):
         raise TypeError(
             f"estimates must be a sequence of estimates, got {type(estimates).__name__}"
         )
-    pairs = [_split_estimate(item, i) for i, item in enumerate(estimates)]
+    pairs = [split_estimate(item, i, labels) for i, item in enumerate(estimates)]
     if len(pairs) < 2:
         raise ValueError(f"at least 2 estimates are needed, got {len(pairs)}")
+    if horizon is None and model is not None:
+        raise ValueError("model= describes the steps after the fusion; give horizon= too")
+    if horizon is not None and record.horizon is None:
+        supporting = [name for name, r in _REGISTRY.items() if r.horizon is not None]
+        raise ValueError(
+            f"method {record.name!r} does not support horizon=; the methods that choose "
+            f"their weights for a horizon are {', '.join(map(repr, supporting))}"
+        )
     _check_options(record, options)
     names = ("estimates' x", "estimates' P") if labels is None else ("x", "P")
     stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs], names=names,
                            labels=labels)
+    if horizon is not None:
+        return _fuse_for_horizon(record, stacked, horizon, model, options)
+    if record.core is not None:
+        return record.core(stacked, **options)
     result = record.function(stacked.x, stacked.P, **options)
     if not isinstance(result, FusionResult):
         raise TypeError(
@@ -321,3 +409,20 @@ def _fuse(estimates, method, options, labels=None):
     if x.shape[-1:] == (1,) and x.shape[:-1] == result.P.shape[:-1]:
         x = x[..., 0]  # a rule answered in column style; normalise before restyling
     return result.replace(x=restore_style(x, stacked.column))
+
+
+def _fuse_for_horizon(record, estimates, steps, model, options):
+    """The rule with the weights its horizon hook chose; the hook's diagnostics nested."""
+    if model is None:
+        raise ValueError(
+            "horizon= needs the model of the steps after the fusion: "
+            "fuse(..., horizon=k, model=dict(F=..., Q=..., H=..., R=...))"
+        )
+    core_options, diagnostics = record.horizon(estimates, model, steps, dict(options))
+    result = record.core(estimates, **core_options)
+    info = dict(result.info)
+    info.update(rule="horizon", horizon=diagnostics)
+    for key in ("iterations", "converged", "gap"):  # of the choice of the weights
+        if key in diagnostics:
+            info[key] = diagnostics[key]
+    return result.replace(info=info)

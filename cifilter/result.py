@@ -84,16 +84,40 @@ class FusionResult:
     method : str
         Name of the rule that produced the result.
     omega : ndarray, shape (..., N), or None
-        Scalar weights of the inputs, when the rule has them.
+        Covariance Intersection's weights on the simplex (rules ``"ci"``; None for rules
+        without them).
     gains : ndarray, shape (..., N, n, n)
         Matrices ``K_i`` with ``x = sum_i K_i x_i``.
     info : Mapping
-        Diagnostics of the rule (criterion value, iterations, converged, ...); stored as a
-        read-only mapping in which every array is read-only, nested mappings are read-only
-        mappings and lists read-only lists.
+        Diagnostics of the rule (see "Common info keys" below); stored as a read-only
+        mapping in which every array is read-only, nested mappings are read-only mappings
+        and lists read-only lists.
+    weights : ndarray, shape (..., N), or None
+        The scalar weights on the estimates, ``P^-1 = sum_i w_i P_i^-1`` for the
+        information-form rules: ``omega`` for ``"ci"`` (the default when only ``omega`` is
+        given), eq. (24) of Wu, Cai & Fu for ``"pci"`` (they do not sum to one), ones for
+        ``"naive"``; None for rules whose fusion is not a scalar weighting (``"optimal"``,
+        ``"ei"``, ``"pcei"``, ``"bayes"``). Each method's page documents them.
 
     Notes
     -----
+    Common info keys, with one meaning for every rule that reports them:
+
+    ``rule``
+        How the weights were chosen: ``"optimal"`` (the rule's criterion minimised),
+        ``"fixed"`` (given by the caller), a fast rule's name, or ``"horizon"`` (chosen
+        for the bound after future filtering; details under ``info["horizon"]``).
+    ``converged``
+        (..., ) bool: the choice of the weights met its tolerance; where a ``gap`` is
+        reported, it means that the certified gap is at most the tolerance.
+    ``iterations``
+        (..., ) int: iterations of the solver that chose the weights.
+    ``value``
+        (..., ) the rule's criterion at the returned ``P`` (trace, determinant, ...).
+    ``gap``
+        (..., ) a certified upper bound of the excess of the criterion over its minimum
+        (relative for traces, in log det for determinants), where the rule certifies one.
+
     The arrays are read-only views and ``info`` is a read-only mapping whose arrays (also
     inside nested mappings, lists and tuples) are read-only, so a result can be stored (for
     instance as ``kf.last_fusion``) without being changed by later code. Results pickle and
@@ -117,25 +141,28 @@ class FusionResult:
     omega: Optional[np.ndarray] = None
     gains: Optional[np.ndarray] = None
     info: Mapping[str, Any] = field(default_factory=dict)
+    weights: Optional[np.ndarray] = None
 
     def __post_init__(self):
-        object.__setattr__(self, "x", _frozen(self.x))
-        object.__setattr__(self, "P", _frozen(self.P))
-        object.__setattr__(self, "omega", _frozen(self.omega))
-        object.__setattr__(self, "gains", _frozen(self.gains))
-        object.__setattr__(self, "info", _frozen_info(dict(self.info)))
+        set_field = object.__setattr__
+        set_field(self, "x", _frozen(self.x))
+        set_field(self, "P", _frozen(self.P))
+        set_field(self, "omega", _frozen(self.omega))
+        set_field(self, "gains", _frozen(self.gains))
+        set_field(self, "info", _frozen_info(dict(self.info)))
+        set_field(self, "weights", self.omega if self.weights is None else _frozen(self.weights))
 
     def __repr__(self):
-        omega = None if self.omega is None else np.array2string(self.omega, precision=4)
+        weights = None if self.weights is None else np.array2string(self.weights, precision=4)
         return (
             f"FusionResult(method={self.method!r}, x shape={self.x.shape}, "
-            f"P shape={self.P.shape}, omega={omega}, info keys={sorted(self.info)})"
+            f"P shape={self.P.shape}, weights={weights}, info keys={sorted(self.info)})"
         )
 
     def __reduce__(self):
         # A mappingproxy does not pickle; rebuild from plain fields (copy and pickle work).
         return (FusionResult, (self.x, self.P, self.method, self.omega, self.gains,
-                               _thawed_info(self.info)))
+                               _thawed_info(self.info), self.weights))
 
     def replace(self, **changes):
         """Return a copy with some fields replaced (like ``dataclasses.replace``).
@@ -143,7 +170,8 @@ class FusionResult:
         Parameters
         ----------
         **changes
-            New values for any of ``x``, ``P``, ``method``, ``omega``, ``gains``, ``info``.
+            New values for any of ``x``, ``P``, ``method``, ``omega``, ``gains``, ``info``,
+            ``weights``.
 
         Returns
         -------
@@ -160,7 +188,7 @@ class FusionResult:
         """
         fields = dict(
             x=self.x, P=self.P, method=self.method, omega=self.omega, gains=self.gains,
-            info=self.info,
+            info=self.info, weights=self.weights,
         )
         fields.update(changes)
         return FusionResult(**fields)

@@ -74,7 +74,7 @@ def general_solver_minimum(Ps, rho):
 def test_rho_1_reproduces_example_2_ci():
     """Remark 3 on Example 2: rho = 1 is CI, omega = 0.5, trace 3.2, K1 = diag(0.8, 0.2)."""
     r = partial_ci([np.zeros(2)] * 2, [PA, PB], rho=1.0)
-    np.testing.assert_allclose(r.omega, [0.5, 0.5], atol=1e-12)
+    np.testing.assert_allclose(r.weights, [0.5, 0.5], atol=1e-12)
     np.testing.assert_allclose(r.info["delta"], [0.5, 0.5], atol=1e-12)
     assert r.info["gamma"] == pytest.approx(1.0)
     assert np.trace(r.P) == pytest.approx(3.2, abs=1e-12)
@@ -92,7 +92,7 @@ def test_example_3_optimum_and_eqs_37_38(m, q, rho0, solver):
     assert r.info["converged"]
     np.testing.assert_allclose(r.info["delta"], 1 / m, atol=1e-12)
     w0 = 1 / (m * rho0 + 1 - rho0)
-    np.testing.assert_allclose(r.omega, w0, rtol=1e-12)
+    np.testing.assert_allclose(r.weights, w0, rtol=1e-12)
     denominator = 1 + (m - 1) / q
     np.testing.assert_allclose(r.P, (1 + (m - 1) * rho0) / denominator * np.eye(m),
                                rtol=1e-12)  # (37)
@@ -143,7 +143,7 @@ def test_rho_0_is_naive_fusion(count, seed):
                                rtol=1e-10)
     np.testing.assert_allclose(r.x, naive.x, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(r.gains, naive.gains, rtol=1e-12, atol=1e-14)
-    np.testing.assert_array_equal(r.omega, 1.0)
+    np.testing.assert_array_equal(r.weights, 1.0)
     assert r.info["converged"] and r.info["iterations"] == 1
 
 
@@ -158,7 +158,7 @@ def test_given_delta_applies_eqs_24_33_34(count):
     w = np.array([1.0 if q == 0 else 1.0 / (q / d + 1 - q) for d, q in zip(delta, used)])
     P = np.linalg.inv(sum(wi * np.linalg.inv(Pi) for wi, Pi in zip(w, Ps)))  # (33)
     gains = np.stack([wi * P @ np.linalg.inv(Pi) for wi, Pi in zip(w, Ps)])  # (34)
-    np.testing.assert_allclose(r.omega, w, rtol=1e-14)  # (24)
+    np.testing.assert_allclose(r.weights, w, rtol=1e-14)  # (24)
     np.testing.assert_allclose(r.P, P, rtol=1e-10)
     np.testing.assert_allclose(r.gains, gains, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(r.x, np.einsum("kij,kj->i", gains, xs), rtol=1e-9, atol=1e-12)
@@ -187,7 +187,7 @@ def test_given_optimal_delta_reproduces_the_optimum_and_rho_1_is_fixed_ci():
     np.testing.assert_allclose(pci.x, ci.x, rtol=1e-12)
     # delta_i = 0 ignores a correlated estimate; rho_i = 0 keeps an uncorrelated one
     np.testing.assert_array_equal(pci.gains[1], 0.0)
-    assert partial_ci(xs, Ps, [0.5, 0.0, 0.5], delta=omega).omega[1] == 1.0
+    assert partial_ci(xs, Ps, [0.5, 0.0, 0.5], delta=omega).weights[1] == 1.0
 
 
 def test_given_delta_is_batched_and_reaches_fuse_and_filters():
@@ -218,9 +218,9 @@ def test_rho_1_is_trace_optimal_ci(count, seed, solver):
     ci = covariance_intersection(xs, Ps)
     assert r.info["converged"]
     assert np.trace(r.P) == pytest.approx(np.trace(ci.P), rel=1e-9)
-    np.testing.assert_allclose(r.omega, r.info["delta"], atol=1e-15)  # w = delta at rho = 1
+    np.testing.assert_allclose(r.weights, r.info["delta"], atol=1e-15)  # w = delta at rho = 1
     np.testing.assert_allclose(r.P, ci.P, rtol=1e-4, atol=1e-6)
-    np.testing.assert_allclose(r.omega, ci.omega, atol=1e-4)
+    np.testing.assert_allclose(r.weights, ci.weights, atol=1e-4)
 
 
 def test_two_estimates_with_per_estimate_bounds_use_the_geometric_mean():
@@ -265,7 +265,7 @@ def test_algorithm_1_iterates_are_those_of_the_implementation(seed, rho):
     assert algorithm_1(Ps[0], Ps[1], rho, 200)[-1] == pytest.approx(g, rel=1e-6)
     # the alternative form of Theorem 3: w_1 = 1/(1 + gamma rho), w_2 = 1/(1 + rho/gamma)
     r = partial_ci(np.zeros((2, 4)), Ps, rho, solver="alternating")
-    np.testing.assert_allclose(r.omega, [1 / (1 + g * rho), 1 / (1 + rho / g)], rtol=1e-12)
+    np.testing.assert_allclose(r.weights, [1 / (1 + g * rho), 1 / (1 + rho / g)], rtol=1e-12)
     np.testing.assert_allclose(r.info["delta"], [1 / (1 + g), g / (1 + g)], rtol=1e-12)
 
 
@@ -320,7 +320,7 @@ def test_newton_finds_exact_boundary_optima_that_the_projections_approach():
     """P2 dominated by P1 with rho = 1: the optimum ignores estimate 2 (delta_2 = 0)."""
     Ps = [np.diag([1.0, 2.0]), np.diag([3.0, 5.0])]
     newton = partial_ci([np.zeros(2)] * 2, Ps, 1.0, solver="newton")
-    assert newton.info["delta"][1] == 0.0 and newton.omega[1] == 0.0
+    assert newton.info["delta"][1] == 0.0 and newton.weights[1] == 0.0
     np.testing.assert_allclose(newton.P, Ps[0], rtol=1e-12)
     slow = partial_ci([np.zeros(2)] * 2, Ps, 1.0, max_iter=1000, solver="alternating")
     assert 0 < slow.info["delta"][1] < 1e-6
@@ -422,7 +422,7 @@ def test_batched_equals_per_item(count):
     rho = np.random.default_rng(2).uniform(size=batch + (count,))
     r = partial_ci(xs, Ps, rho)
     assert r.x.shape == batch + (3,) and r.P.shape == batch + (3, 3)
-    assert r.gains.shape == batch + (count, 3, 3) and r.omega.shape == batch + (count,)
+    assert r.gains.shape == batch + (count, 3, 3) and r.weights.shape == batch + (count,)
     assert r.info["iterations"].shape == batch and r.info["converged"].shape == batch
     assert r.info["delta"].shape == batch + (count,)
     if count == 2:
@@ -431,7 +431,7 @@ def test_batched_equals_per_item(count):
         single = partial_ci(xs[index], Ps[index], rho[index])
         np.testing.assert_allclose(r.x[index], single.x, rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(r.P[index], single.P, rtol=1e-10, atol=1e-12)
-        np.testing.assert_allclose(r.omega[index], single.omega, rtol=1e-10)
+        np.testing.assert_allclose(r.weights[index], single.weights, rtol=1e-10)
         assert r.info["iterations"][index] == single.info["iterations"]
         assert r.info["converged"][index] == single.info["converged"]
 
@@ -477,7 +477,7 @@ def test_inputs_are_not_mutated():
     ({"rho": [0.1, 0.2, 0.3]}, ValueError, r"shape \(\.\.\., 2\)"),
     ({"rho": np.full((3, 1), 0.5)}, ValueError, "broadcast"),
     ({"rho": "high"}, TypeError, "numeric"),
-    ({"rho": None}, TypeError, "numeric"),
+    ({"rho": None}, ValueError, "needs a correlation coefficient bound"),
     ({"rho": 0.5, "tol": 0.0}, ValueError, "tol"),
     ({"rho": 0.5, "tol": "small"}, TypeError, "tol"),
     ({"rho": 0.5, "max_iter": 0}, ValueError, "max_iter"),

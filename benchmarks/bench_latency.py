@@ -1,0 +1,187 @@
+"""Single-call latency of every fusion method, next to filterpy's ``KalmanFilter.update``.
+
+One 4x4 fusion of two estimates (a constant-velocity target in the plane), timed three
+ways in the same process and the same run:
+
+* ``kf.fuse``: the filter method, including the write-back into the filter;
+* ``cifilter.fuse``: the front door;
+* ``rule``: the rule's own public function (for ``horizon=`` the public
+  :func:`cifilter.horizon.horizon_weights` followed by the rule with those weights);
+
+each as the median over repeats of the mean time of a loop of calls, and each divided by the
+time of filterpy's ``update`` on the same filter. Run it with
+
+    python benchmarks/bench_latency.py            # the table
+    python benchmarks/bench_latency.py --markdown # the same as a Markdown table (README)
+
+A tree other than the installed one is timed with ``--tree PATH`` (it is put first on
+``sys.path``), so an older checkout can be measured with the same script.
+"""
+
+import argparse
+import statistics
+import sys
+import timeit
+
+import numpy as np
+
+
+def _setup(tree):
+    if tree:
+        sys.path.insert(0, tree)
+    import cifilter
+    from filterpy.kalman import KalmanFilter as FilterpyKF
+
+    return cifilter, FilterpyKF
+
+
+def _model():
+    dt = 1.0
+    F = np.eye(4)
+    F[0, 2] = F[1, 3] = dt
+    H = np.zeros((2, 4))
+    H[0, 0] = H[1, 1] = 1.0
+    q = np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+    Q = np.kron(np.eye(2), q) * 0.1
+    return F, H, Q, np.diag([0.5, 0.8])
+
+
+def _estimates():
+    rng = np.random.default_rng(7)
+    A = rng.standard_normal((2, 4, 4))
+    Ps = A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(4)
+    return rng.standard_normal((2, 4)), Ps
+
+
+def _time(call, reset, number, repeat):
+    def loop():
+        for _ in range(number):
+            reset()
+            call()
+
+    loop()  # warm up (imports, caches)
+    times = timeit.repeat(loop, number=1, repeat=repeat)
+    return statistics.median(times) / number
+
+
+def cases(cifilter):
+    """(label, method, options, horizon, rule call) for every registered method."""
+    xs, Ps = _estimates()
+    joint = np.zeros((8, 8))
+    joint[:4, :4], joint[4:, 4:] = Ps
+    joint[:4, 4:] = 0.3 * Ps[0]
+    joint[4:, :4] = 0.3 * Ps[0].T
+    both = [(xs[0], Ps[0]), (xs[1], Ps[1])]
+    F, H, Q, R = _model()
+
+    from cifilter.horizon import horizon_weights
+
+    def horizon_rule(method, options):
+        def call():
+            choice = horizon_weights(Ps, F, Q, H, R, 5, rho=options.get("rho"))
+            if method == "ci":
+                return cifilter.covariance_intersection(xs, Ps, omega=choice.omega)
+            return cifilter.partial_ci(xs, Ps, options["rho"], delta=choice.omega)
+        return call
+
+    def ei_call(rule, **options):
+        try:  # the (xs, Ps) form; older versions only had (xa, Pa, xb, Pb)
+            rule(xs, Ps, **options)
+            return lambda: rule(xs, Ps, **options)
+        except TypeError:
+            return lambda: rule(xs[0], Ps[0], xs[1], Ps[1], **options)
+
+    table = [
+        ("ci (trace)", "ci", {}, None, lambda: cifilter.covariance_intersection(xs, Ps)),
+        ("ci (det)", "ci", {"criterion": "det"}, None,
+         lambda: cifilter.covariance_intersection(xs, Ps, criterion="det")),
+        ('ci omega="fast"', "ci", {"omega": "fast"}, None,
+         lambda: cifilter.covariance_intersection(xs, Ps, omega="fast")),
+        ("naive", "naive", {}, None, lambda: cifilter.naive_fusion(xs, Ps)),
+        ("optimal", "optimal", {"joint": joint}, None,
+         lambda: cifilter.optimal_fusion(xs, joint)),
+        ("pci rho=.5", "pci", {"rho": 0.5}, None, lambda: cifilter.partial_ci(xs, Ps, 0.5)),
+        ("ei", "ei", {}, None, ei_call(cifilter.ellipsoidal_intersection)),
+        ("pcei", "pcei", {}, None, ei_call(cifilter.pc_ellipsoidal_intersection)),
+        ("bayes (100 samples)", "bayes", {"samples": 100, "rng": 0}, None,
+         lambda: cifilter.bayesian_fusion(xs, Ps, samples=100, rng=0)),
+        ("ci horizon=5", "ci", {}, 5, horizon_rule("ci", {})),
+        ("pci rho=.5 horizon=5", "pci", {"rho": 0.5}, 5, horizon_rule("pci", {"rho": 0.5})),
+    ]
+    return both, table
+
+
+def run(tree=None, number=200, repeat=7):
+    cifilter, FilterpyKF = _setup(tree)
+    F, H, Q, R = _model()
+    xs, Ps = _estimates()
+    both, table = cases(cifilter)
+
+    def make(cls):
+        kf = cls(dim_x=4, dim_z=2)
+        kf.F, kf.H, kf.Q, kf.R = F, H, Q, R
+        kf.x, kf.P = xs[0].reshape(4, 1).copy(), Ps[0].copy()
+        return kf
+
+    reference = make(FilterpyKF)
+    x0, P0 = reference.x, reference.P
+    z = np.array([[0.3], [-0.2]])
+
+    def reset_reference():
+        reference.x, reference.P = x0, P0
+
+    update = _time(lambda: reference.update(z), reset_reference, number, repeat)
+    kf = make(cifilter.KalmanFilter)
+    other = (xs[1], Ps[1])
+
+    def reset_kf():
+        kf.x, kf.P = x0, P0
+
+    def nothing():
+        pass
+
+    rows = []
+    for label, method, options, horizon, rule in table:
+        scale = max(1, number // (20 if method in ("bayes", "pcei") or horizon else 1))
+        count = number // scale if scale > 1 else number
+        extra = {} if horizon is None else {"horizon": horizon}
+        times = {}
+        times["kf.fuse"] = _time(lambda: kf.fuse(other, method, **extra, **options),
+                                 reset_kf, count, repeat)
+        try:
+            cifilter.fuse(both, method, **extra, **options)
+            times["cifilter.fuse"] = _time(
+                lambda: cifilter.fuse(both, method, **extra, **options), nothing, count, repeat)
+        except TypeError:  # versions whose front door had no horizon=
+            times["cifilter.fuse"] = float("nan")
+        times["rule"] = _time(rule, nothing, count, repeat)
+        rows.append((label, times))
+    return update, rows
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tree", help="import cifilter from this source tree")
+    parser.add_argument("--number", type=int, default=200, help="calls per timing loop")
+    parser.add_argument("--repeat", type=int, default=7, help="timing loops (median)")
+    parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
+    args = parser.parse_args(argv)
+    update, rows = run(args.tree, args.number, args.repeat)
+    us = 1e6
+    if args.markdown:
+        print(f"filterpy `KalmanFilter.update`: {update * us:.1f} µs\n")
+        print("| method | `kf.fuse` | `cifilter.fuse` | rule function | `kf.fuse` / `update` |")
+        print("|---|---|---|---|---|")
+        for label, t in rows:
+            print(f"| {label} | {t['kf.fuse'] * us:.0f} µs | {t['cifilter.fuse'] * us:.0f} µs | "
+                  f"{t['rule'] * us:.0f} µs | {t['kf.fuse'] / update:.1f}x |")
+        return
+    print(f"filterpy KalmanFilter.update: {update * us:8.1f} us")
+    print(f"{'method':24s} {'kf.fuse':>10s} {'fuse':>10s} {'rule':>10s} {'kf.fuse/update':>15s}")
+    for label, t in rows:
+        print(f"{label:24s} {t['kf.fuse'] * us:8.1f}us {t['cifilter.fuse'] * us:8.1f}us "
+              f"{t['rule'] * us:8.1f}us {t['kf.fuse'] / update:14.1f}x")
+
+
+if __name__ == "__main__":
+    main()
