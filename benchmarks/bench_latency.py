@@ -111,7 +111,7 @@ def cases(cifilter):
     return both, table
 
 
-def run(tree=None, number=200, repeat=7):
+def run(tree=None, number=200, repeat=7, only=None):
     cifilter, FilterpyKF = _setup(tree)
     F, H, Q, R = _model()
     xs, Ps = _estimates()
@@ -142,6 +142,8 @@ def run(tree=None, number=200, repeat=7):
 
     rows = []
     for label, method, options, horizon, rule in table:
+        if only and label not in only:
+            continue
         scale = max(1, number // (20 if method in ("bayes", "pcei") or horizon else 1))
         count = number // scale if scale > 1 else number
         extra = {} if horizon is None else {"horizon": horizon}
@@ -165,8 +167,10 @@ def main(argv=None):
     parser.add_argument("--number", type=int, default=200, help="calls per timing loop")
     parser.add_argument("--repeat", type=int, default=7, help="timing loops (median)")
     parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
+    parser.add_argument("--only", help="comma-separated labels of the rows to time")
     args = parser.parse_args(argv)
-    update, rows = run(args.tree, args.number, args.repeat)
+    only = None if args.only is None else set(args.only.split(","))
+    update, rows = run(args.tree, args.number, args.repeat, only)
     us = 1e6
     if args.markdown:
         print(f"filterpy `KalmanFilter.update`: {update * us:.1f} µs\n")

@@ -25,7 +25,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._linalg import condition_number, ill_conditioned, lower_inverse, symmetrize
+from ._linalg import (
+    cholesky_single,
+    condition_number,
+    ill_conditioned,
+    lower_inverse,
+    symmetrize,
+)
 
 __all__ = [
     "InformationFactors",
@@ -107,6 +113,12 @@ def checked_cholesky(A, name, *, failures="raise"):
     ndarray, shape (..., n, n)
     """
     n = A.shape[-1]
+    if A.ndim == 2:  # one matrix: LAPACK directly, the checks on its diagonal in Python
+        R = cholesky_single(A)
+        if R is not None:
+            d = [abs(v) for v in R.diagonal().tolist()]
+            if max(d) ** 2 < min(d) ** 2 / (n * _EPS):
+                return R
     try:
         R = np.linalg.cholesky(A)
         ok = _numerically_positive_definite(R, n)

@@ -5,9 +5,11 @@ loop over the batch. Inverses and solves go through the Cholesky factor, so the
 results are symmetric and positive definite by construction rather than by luck.
 """
 
+import math
 from typing import NamedTuple
 
 import numpy as np
+from scipy.linalg import lapack
 
 __all__ = [
     "MAX_CONDITION",
@@ -16,11 +18,14 @@ __all__ = [
     "cho_inverse",
     "cho_solve",
     "cholesky",
+    "cholesky_single",
     "condition_number",
     "diagonalise_pair",
+    "eigh_single",
     "ill_conditioned",
     "logdet_from_cholesky",
     "lower_inverse",
+    "lower_inverse_single",
     "mahalanobis_sq",
     "solve_lower",
     "spd_inverse",
@@ -276,3 +281,30 @@ def diagonalise_pair(L1, P2):
     S = symmetrize(L1_inv @ P2 @ np.swapaxes(L1_inv, -1, -2))
     lam, U = np.linalg.eigh(S)
     return DiagonalisedPair(L1_inv, lam, U, L1 @ U)
+
+
+# Single matrices: LAPACK called directly. numpy's linalg functions cost several
+# microseconds of dispatch per call on a 4x4 matrix, LAPACK itself a fraction of that; the
+# single-call path of the filters (one fusion of one track) is made of such calls.
+def cholesky_single(A):
+    """Lower Cholesky factor of one symmetric matrix (n, n), or None if LAPACK fails.
+
+    Only the lower triangle of ``A`` is read. None also for a non-finite factor; the
+    caller then takes the batched path, whose messages explain the failure.
+    """
+    L, info = lapack.dpotrf(A, lower=1, clean=1)
+    if info != 0 or not math.isfinite(float(L.trace())):
+        return None
+    return L
+
+
+def lower_inverse_single(L):
+    """Inverse of one lower triangular, non-singular matrix (n, n) (LAPACK ``dtrtri``)."""
+    L_inv, _ = lapack.dtrtri(L, lower=1)
+    return L_inv
+
+
+def eigh_single(S):
+    """Eigenvalues (ascending) and eigenvectors of one symmetric matrix (LAPACK ``dsyevd``)."""
+    lam, U, _ = lapack.dsyevd(S, compute_v=1, lower=1)
+    return lam, U

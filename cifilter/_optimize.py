@@ -6,9 +6,11 @@ number of iterations and whether the tolerance was met. Optima on the boundary a
 returned exactly (weights of exactly 0 or 1), not approached asymptotically.
 """
 
+import math
+
 import numpy as np
 
-__all__ = ["minimize_convex_interval", "minimize_convex_simplex"]
+__all__ = ["minimize_convex_interval", "minimize_convex_scalar", "minimize_convex_simplex"]
 
 # Relative cut-off of the pseudo-inverse of the normalised KKT system: directions whose
 # curvature is at the rounding level of the Hessian (exact ties) get no step, curvature
@@ -77,6 +79,61 @@ def minimize_convex_interval(derivatives, size, *, scale, xtol=1e-13, max_iter=1
         iterations[index] += 1
         done[index] = settled | (hi_i - lo_i < xtol)
     return w, iterations, done
+
+
+def minimize_convex_scalar(derivative, *, scale, xtol=1e-13, max_iter=100):
+    """:func:`minimize_convex_interval` for one problem, in Python floats.
+
+    The same iteration (the same end tests, bracket, Newton and bisection steps and stopping
+    rules), without the batch bookkeeping that dominates the cost of a single problem.
+
+    Parameters
+    ----------
+    derivative : callable
+        ``derivative(w) -> (f', f'')`` at a float ``w`` in [0, 1]; ``f'`` non-decreasing.
+    scale : float
+        Typical magnitude of ``f`` (the flatness test, as in :func:`minimize_convex_interval`).
+    xtol : float
+        Stop when the Newton step or the bracket is below ``xtol``.
+    max_iter : int
+        Iteration limit.
+
+    Returns
+    -------
+    w : float
+        The minimiser in [0, 1] (exactly 0 or 1 at an end).
+    iterations : int
+    converged : bool
+    """
+    g0, _ = derivative(0.0)
+    g1, _ = derivative(1.0)
+    tiny = 1e-13 * scale
+    if abs(g0) <= tiny and abs(g1) <= tiny:
+        return 0.5, 0, True
+    if g0 >= 0:
+        return 0.0, 0, True
+    if g1 <= 0:
+        return 1.0, 0, True
+    w, lo, hi = 0.5, 0.0, 1.0
+    for iteration in range(1, max_iter + 1):
+        g, h = derivative(w)
+        if g < 0:
+            lo = w
+        elif g > 0:
+            hi = w
+        if h != 0:
+            step = -g / h
+        else:  # as numpy's -g / 0: an infinite step (bisection) or, for g = 0, none
+            step = math.copysign(math.inf, -g) if g != 0 else math.nan
+        newton = w + step
+        settled = abs(step) < xtol or g == 0
+        if lo < newton < hi and math.isfinite(newton):
+            w = newton
+        elif not settled:
+            w = 0.5 * (lo + hi)
+        if settled or hi - lo < xtol:
+            return w, iteration, True
+    return w, max_iter, False
 
 
 def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, max_iter=200,

@@ -4,6 +4,7 @@
 :meth:`FusionMixin.fuse`; constructors, ``predict`` and ``update`` are filterpy's own.
 """
 
+import math
 import warnings
 
 import numpy as np
@@ -67,6 +68,10 @@ def _single_estimates(estimates, labels):
     pairs = []
     for i, item in enumerate(estimates):
         x, P = split_estimate(item, i, labels)
+        if (isinstance(x, np.ndarray) and isinstance(P, np.ndarray) and P.ndim == 2
+                and x.shape in ((P.shape[0],), (P.shape[0], 1))):
+            pairs.append((x, P))  # the usual filterpy shapes: nothing to check here
+            continue
         try:
             x_shape, P_shape = np.shape(x), np.shape(P)
         except ValueError:  # ragged input: the validation names it
@@ -222,7 +227,7 @@ class FusionMixin:
                                 labels=labels)
         x_shape = np.shape(self.x)
         x = np.asarray(result.x)
-        if x.size != int(np.prod(x_shape)) or np.shape(result.P) != np.shape(self.P):
+        if x.size != math.prod(x_shape) or np.shape(result.P) != np.shape(self.P):
             raise ValueError(
                 f"fusion gave x of shape {x.shape} and P of shape {np.shape(result.P)}; a "
                 f"filter with x of shape {x_shape} fuses single (unbatched) estimates only"
