@@ -30,6 +30,7 @@ from ._linalg import (
     condition_number,
     ill_conditioned,
     lower_inverse,
+    lower_inverse_single,
     symmetrize,
 )
 
@@ -50,11 +51,15 @@ _EPS = np.finfo(float).eps
 
 
 def lower_inverse_stack(L):
-    """Inverse of lower triangular matrices by forward substitution, also for one matrix.
+    """Inverse of lower triangular matrices (..., n, n).
 
-    (``_linalg.lower_inverse`` hands a single matrix to LAPACK's LU solver, whose rounding
-    differs from the batched substitution: a batch would not equal its items bit for bit.)
+    One matrix (any number of unit leading axes) goes to LAPACK's triangular inverse, a
+    stack to the batched forward substitution; both are backward stable, their results
+    agree to rounding.
     """
+    n = L.shape[-1]
+    if L.size == n * n:
+        return lower_inverse_single(L.reshape(n, n)).reshape(L.shape)
     return lower_inverse(L.reshape((-1,) + L.shape[-2:])).reshape(L.shape)
 
 
@@ -113,12 +118,12 @@ def checked_cholesky(A, name, *, failures="raise"):
     ndarray, shape (..., n, n)
     """
     n = A.shape[-1]
-    if A.ndim == 2:  # one matrix: LAPACK directly, the checks on its diagonal in Python
-        R = cholesky_single(A)
+    if A.size == n * n:  # one matrix: LAPACK directly, the checks on its diagonal in Python
+        R = cholesky_single(A.reshape(n, n))
         if R is not None:
             d = [abs(v) for v in R.diagonal().tolist()]
             if max(d) ** 2 < min(d) ** 2 / (n * _EPS):
-                return R
+                return R.reshape(A.shape)
     try:
         R = np.linalg.cholesky(A)
         ok = _numerically_positive_definite(R, n)

@@ -12,7 +12,7 @@ import numpy as np
 
 from ._information import information_factors, squared_norms, trace_curvature
 from ._linalg import symmetrize
-from ._optimize import minimize_convex_simplex
+from ._optimize import minimize_convex_interval, minimize_convex_scalar, minimize_convex_simplex
 from ._validation import as_float_array, check_finite
 
 __all__ = [
@@ -173,6 +173,35 @@ def alternating_delta(L_inv, rho, tol, max_iter, start=None):
 NEWTON_RHO_FLOOR = 1e-8
 
 
+def _pair_newton(evaluate, L_inv, size, max_iter):
+    """Two estimates: Newton on ``delta = (t, 1 - t)``, the same safeguarded interval
+    method as two-estimate CI (``f'(t) = g_1 - g_2``, ``f''(t) = H_11 - 2 H_12 + H_22``).
+
+    ``L_inv`` is (size, 2, n, n); one problem runs the scalar form of the iteration.
+    """
+    scale = squared_norms(L_inv).sum(axis=-1)  # a magnitude of Tr P (flatness test only)
+
+    def derivatives(t, index):
+        _, g, H = evaluate(np.stack([t, 1.0 - t], axis=-1), index)
+        return g[:, 0] - g[:, 1], H[:, 0, 0] - 2.0 * H[:, 0, 1] + H[:, 1, 1]
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if size == 1:
+            only = np.zeros(1, dtype=int)
+
+            def derivative(t):
+                slope, curvature = derivatives(np.array([t]), only)
+                return float(slope[0]), float(curvature[0])
+
+            t, steps, _ = minimize_convex_scalar(derivative, scale=float(scale[0]),
+                                                 max_iter=max_iter)
+            t, steps = np.array([t]), np.array([steps])
+        else:
+            t, steps, _ = minimize_convex_interval(derivatives, size, scale=scale,
+                                                   max_iter=max_iter)
+    return np.stack([t, 1.0 - t], axis=-1), steps
+
+
 def newton_delta(L_inv, rho, tol, max_iter):
     """Minimise ``Tr P(delta)`` (eq. (35)) by the active-set Newton method on the simplex.
 
@@ -213,10 +242,13 @@ def newton_delta(L_inv, rho, tol, max_iter):
         trace = squared_norms(factors.R_inv)
         return trace, -first * spread, symmetrize(H)
 
-    delta, steps, _ = minimize_convex_simplex(
-        evaluate, objective, count, (size,), xtol=tol, max_iter=max_iter, gtol=tol,
-        subset=True,
-    )
+    if count == 2:
+        delta, steps = _pair_newton(evaluate, flat_L_inv, size, max_iter)
+    else:
+        delta, steps, _ = minimize_convex_simplex(
+            evaluate, objective, count, (size,), xtol=tol, max_iter=max_iter, gtol=tol,
+            subset=True,
+        )
     delta, steps = delta.reshape(batch + (count,)), steps.reshape(batch)
     _, factors, spread = bound_and_spread(delta, true_rho, L_inv)
     trace = squared_norms(factors.R_inv)
