@@ -21,6 +21,7 @@ by construction, and no step squares a condition number: the information matrice
 built from the inverse Cholesky factors, and only triangular inverses are taken.
 """
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -60,6 +61,8 @@ def lower_inverse_stack(L):
     n = L.shape[-1]
     if L.size == n * n:
         return lower_inverse_single(L.reshape(n, n)).reshape(L.shape)
+    if L.ndim == 3 and L.shape[0] <= 8:  # the estimates of one problem (no batch axes)
+        return np.stack([lower_inverse_single(item) for item in L])
     return lower_inverse(L.reshape((-1,) + L.shape[-2:])).reshape(L.shape)
 
 
@@ -225,6 +228,8 @@ def weighted_fusion(x, L, weights, L_inv=None, factors=None):
         L_inv = lower_inverse_stack(L)
     if factors is None:
         factors = information_factors(L_inv, weights)
+    if weights.ndim == 1:
+        return _single_weighted_fusion(x, L, weights, L_inv, factors)
     B = factors.B
     n, count = x.shape[-1], x.shape[-2]
     # K_i = w_i P P_i^-1 = w_i B_i L_i^-1. The gains sum to I in exact arithmetic; make it
@@ -257,6 +262,32 @@ def weighted_fusion(x, L, weights, L_inv=None, factors=None):
         P += M @ np.swapaxes(M, -1, -2)
     P = symmetrize(P)
     return WeightedFusion(x_fused, P, gains, factors)
+
+
+def _single_weighted_fusion(x, L, weights, L_inv, factors):
+    """:func:`weighted_fusion` of one problem (no batch axes): the same gains, mean and
+    bound, with Python control flow instead of masks over a batch."""
+    count, n = x.shape
+    w = weights.tolist()
+    reference = w.index(max(w))
+    gains = np.empty((count, n, n))
+    remainder = np.eye(n)
+    x_ref = x[reference]
+    x_fused = x_ref.copy()
+    for k in range(count):
+        if k == reference:
+            continue
+        K = w[k] * (factors.B[k] @ L_inv[k]) if w[k] > 0.0 else np.zeros((n, n))
+        gains[k] = K
+        remainder -= K
+        x_fused += K @ (x[k] - x_ref)
+    gains[reference] = remainder
+    P = np.zeros((n, n))
+    for k in range(count):
+        if w[k] > 0.0:
+            M = (gains[k] @ L[k]) / math.sqrt(w[k])
+            P += M @ M.T
+    return WeightedFusion(x_fused, 0.5 * (P + P.T), gains, factors)
 
 
 def squared_norms(A):
