@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._linalg import (
+    cholesky_failures,
     cholesky_single,
     condition_number,
     ill_conditioned,
@@ -132,8 +133,7 @@ def checked_cholesky(A, name, *, failures="raise"):
         ok = _numerically_positive_definite(R, n)
     except np.linalg.LinAlgError:
         # Some matrix of the stack failed: find which (failure path only), factor the rest.
-        eigenvalues = np.linalg.eigvalsh(np.where(np.isfinite(A), A, 0.0))
-        ok = eigenvalues[..., 0] > n * _EPS * np.abs(eigenvalues[..., -1])
+        ok = ~cholesky_failures(A)
         R = np.linalg.cholesky(np.where(ok[..., None, None], A, np.eye(n)))
         ok = ok & _numerically_positive_definite(R, n)
     if not np.all(ok):

@@ -18,6 +18,7 @@ __all__ = [
     "cho_inverse",
     "cho_solve",
     "cholesky",
+    "cholesky_failures",
     "cholesky_single",
     "condition_number",
     "diagonalise_pair",
@@ -96,26 +97,33 @@ def symmetrize(A):
 EIGENVALUE_RTOL = 8 * np.finfo(float).eps
 
 
-def _first_failing_index(A):
-    """Index, smallest and largest eigenvalue of the first matrix in a stack that is not PD.
+def cholesky_failures(A):
+    """Which matrices of a stack (..., n, n) numpy's Cholesky factorisation rejects.
 
-    Failure path only (one ``eigvalsh`` per finite matrix of the stack). A non-finite
-    matrix counts as failing with NaN eigenvalues.
+    Returns a bool array (...): True where the factorisation raises or gives a non-finite
+    factor. Found by bisection over the stack, so a failure path costs a few
+    factorisations per failing matrix, not one per matrix. The one helper that locates
+    failing factors (for messages, for solvers that step back, for samplers that redraw).
     """
-    finite = np.isfinite(A).all(axis=(-2, -1))
-    smallest = np.full(A.shape[:-2], np.nan)
-    largest = np.full(A.shape[:-2], np.nan)
-    if np.any(finite):
-        eigenvalues = np.linalg.eigvalsh(A[finite])
-        smallest[finite] = eigenvalues[..., 0]
-        largest[finite] = np.abs(eigenvalues).max(axis=-1)
-    # Relative smallest eigenvalue; NaN (non-finite matrix) first, then the least PD.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        relative = np.where(largest > 0, smallest / largest, np.where(smallest < 0, -np.inf, 0.0))
-    bad = np.isnan(relative) | (relative <= EIGENVALUE_RTOL * A.shape[-1])
-    flat = bad.ravel() if np.any(bad) else (relative == relative.min()).ravel()
-    index = np.unravel_index(int(np.argmax(flat)), A.shape[:-2])
-    return tuple(int(i) for i in index), float(smallest[index]), float(largest[index])
+    flat = A.reshape((-1,) + A.shape[-2:])
+    failed = np.zeros(len(flat), dtype=bool)
+
+    def visit(lo, hi):
+        try:
+            if np.isfinite(np.linalg.cholesky(flat[lo:hi])).all():
+                return
+        except np.linalg.LinAlgError:
+            pass
+        if hi - lo == 1:
+            failed[lo] = True
+            return
+        middle = (lo + hi) // 2
+        visit(lo, middle)
+        visit(middle, hi)
+
+    if len(flat):
+        visit(0, len(flat))
+    return failed.reshape(A.shape[:-2])
 
 
 def cholesky(A, name="matrix"):
@@ -158,8 +166,15 @@ def cholesky(A, name="matrix"):
             return L
     except np.linalg.LinAlgError:
         pass
-    index, smallest, largest = _first_failing_index(A)
+    failed = cholesky_failures(A)
+    index = np.unravel_index(int(np.argmax(failed.ravel())), A.shape[:-2])
+    index = tuple(int(i) for i in index)
     where = f"{name}[{', '.join(map(str, index))}]" if index else name
+    matrix = A[index]
+    smallest = largest = np.nan
+    if np.isfinite(matrix).all():
+        eigenvalues = np.linalg.eigvalsh(matrix)
+        smallest, largest = float(eigenvalues[0]), float(np.abs(eigenvalues).max())
     if np.isnan(smallest):
         raise ValueError(
             f"{where} is not positive definite: it has non-finite entries (NaN or inf)"

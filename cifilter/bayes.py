@@ -29,6 +29,7 @@ import numpy as np
 from ._linalg import (
     IllConditionedError,
     cholesky,
+    cholesky_failures,
     condition_number,
     ill_conditioned,
     lower_inverse,
@@ -224,20 +225,6 @@ def _chunk_rows(dim):
 
 
 # ----------------------------------------------------------------- the sampler (public)
-def _cholesky_failures(A):
-    """Indices of the matrices of ``A`` (R, d, d) that numpy's Cholesky rejects (bisection)."""
-    try:
-        L = np.linalg.cholesky(A)
-        if np.isfinite(L).all():
-            return np.zeros(0, dtype=int)
-    except np.linalg.LinAlgError:
-        pass
-    if len(A) == 1:
-        return np.zeros(1, dtype=int)
-    half = len(A) // 2
-    return np.concatenate([_cholesky_failures(A[:half]), half + _cholesky_failures(A[half:])])
-
-
 def _unfactorisable(L, P, dof, normal_rng, chi_rng, out):
     """Draw into ``out`` (:func:`_sample_coloured`); return the rows numpy cannot factorise.
 
@@ -246,7 +233,7 @@ def _unfactorisable(L, P, dof, normal_rng, chi_rng, out):
     """
     ratio = _sample_coloured(L, P, dof, normal_rng, chi_rng, out)
     suspects = np.flatnonzero(~(ratio >= _SUSPECT_PIVOT_RATIO))
-    return suspects[_cholesky_failures(out[suspects])] if suspects.size else suspects
+    return suspects[cholesky_failures(out[suspects])] if suspects.size else suspects
 
 
 def _sample_joint(L, P, dof, size, rng):
