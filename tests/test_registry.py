@@ -150,3 +150,165 @@ def test_option_errors_come_before_the_validation_of_the_estimates():
 def test_bad_values_through_fuse_are_named(estimates, error, message):
     with pytest.raises(error, match=message):
         fuse(estimates)
+
+
+# --------------------------------------------------------------------------- the front door
+def _pair():
+    return [(np.array([1.0, 0.0]), np.diag([1.0, 4.0])),
+            (np.array([0.0, 1.0]), np.diag([4.0, 1.0]))]
+
+
+def _model():
+    return dict(F=np.array([[1.0, 1.0], [0.0, 1.0]]), Q=0.1 * np.eye(2),
+                H=np.array([[1.0, 0.0]]), R=np.eye(1))
+
+
+def test_builtin_rules_are_registered_in_their_documented_order():
+    assert available_methods()[:7] == ("ci", "naive", "optimal", "pci", "ei", "pcei", "bayes")
+
+
+def test_fuse_validates_the_estimates_once(monkeypatch):
+    """The rule's core gets the validated estimates: no second check of the covariances."""
+    import cifilter._validation as validation
+
+    calls = []
+    original = validation.as_estimates
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    for module in (validation, registry_module, cifilter.ci, cifilter.pci, cifilter.optimal,
+                   cifilter.bayes):
+        if hasattr(module, "as_estimates"):
+            monkeypatch.setattr(module, "as_estimates", counting)
+    for method, options in [("ci", {}), ("ci", {"omega": "fast"}), ("naive", {}),
+                            ("pci", {"rho": 0.5}), ("bayes", {"samples": 5, "rng": 0})]:
+        calls.clear()
+        fuse(_pair(), method, **options)
+        assert len(calls) == 1, method
+        calls.clear()
+        if get_method(method).horizon is not None and "omega" not in options:
+            fuse(_pair(), method, horizon=3, model=_model(), **options)
+            assert len(calls) == 1, method
+
+
+def test_core_receives_factorised_estimates(scratch_registry):
+    seen = {}
+
+    def core(estimates):
+        seen["estimates"] = estimates
+        return FusionResult(estimates.x[..., 0, :], estimates.P[..., 0, :, :], "first")
+
+    register_method("first", lambda xs, Ps: None, core=core)
+    fuse(_pair(), "first")
+    est = seen["estimates"]
+    np.testing.assert_allclose(est.L @ np.swapaxes(est.L, -1, -2), est.P)
+    assert est.x.shape == (2, 2) and est.count == 2 and est.dim == 2
+
+
+@pytest.mark.parametrize("method, options", [
+    ("ci", {}), ("ci", {"criterion": "det"}), ("ci", {"omega": "fast"}), ("naive", {}),
+    ("pci", {"rho": 0.3}), ("ei", {}), ("pcei", {}), ("bayes", {"samples": 20, "rng": 1}),
+])
+def test_fuse_equals_the_rule_function(method, options):
+    record = get_method(method)
+    xs, Ps = [p[0] for p in _pair()], [p[1] for p in _pair()]
+    via_fuse = fuse(_pair(), method, **options)
+    direct = record.function(xs, Ps, **options)
+    np.testing.assert_array_equal(via_fuse.x, direct.x)
+    np.testing.assert_array_equal(via_fuse.P, direct.P)
+
+
+def test_every_result_has_weights_with_one_meaning():
+    pair = _pair()
+    ci = fuse(pair, "ci")
+    np.testing.assert_array_equal(ci.weights, ci.omega)
+    assert ci.weights.sum() == pytest.approx(1.0)
+    naive = fuse(pair, "naive")
+    np.testing.assert_array_equal(naive.weights, [1.0, 1.0])
+    pci = fuse(pair, "pci", rho=0.5)
+    assert pci.omega is None and pci.weights.sum() > 1.0  # eq. (24): not on the simplex
+    d, rho = pci.info["delta"], pci.info["rho"]
+    np.testing.assert_allclose(pci.weights, d / (rho + (1 - rho) * d))
+    for method in ("ei", "pcei", "bayes"):
+        assert fuse(pair, method).weights is None
+    for method in ("ci", "naive", "optimal", "pci", "bayes"):
+        assert get_method(method).weights  # documented per rule
+
+
+@pytest.mark.parametrize("method, options, fixed", [
+    ("ci", {}, "omega"), ("ci", {"criterion": "det"}, "omega"),
+    ("pci", {"rho": 0.5}, "delta"),
+])
+def test_fuse_with_horizon_nests_the_horizon_diagnostics(method, options, fixed):
+    r = fuse(_pair(), method, horizon=4, model=_model(), **options)
+    assert r.info["rule"] == "horizon"
+    diagnostics = r.info["horizon"]
+    assert diagnostics["steps"] == 4
+    assert {"criterion", "value", "value_recursive", "weights_recursive", "iterations",
+            "converged", "solver"} <= set(diagnostics)
+    for key in ("iterations", "converged", "gap"):  # the choice of the weights, not the rule's
+        if key in diagnostics:
+            np.testing.assert_array_equal(r.info[key], diagnostics[key])
+    # the weights are those the horizon chose, applied by the rule
+    chosen = r.omega if fixed == "omega" else r.info["delta"]
+    again = fuse(_pair(), method, **{fixed: chosen}, **options)
+    np.testing.assert_allclose(again.P, r.P, rtol=1e-12)
+
+
+def test_fuse_with_horizon_zero_is_the_plain_rule():
+    for method, options in [("ci", {}), ("pci", {"rho": 0.5})]:
+        plain = fuse(_pair(), method, **options)
+        zero = fuse(_pair(), method, horizon=0, model=_model(), **options)
+        np.testing.assert_allclose(zero.P, plain.P, rtol=1e-9)
+        np.testing.assert_allclose(zero.weights, plain.weights, atol=1e-9)
+
+
+def test_kf_fuse_with_horizon_is_the_front_door_with_the_filters_model():
+    kf = cifilter.KalmanFilter(dim_x=2, dim_z=1)
+    model = _model()
+    kf.F, kf.Q, kf.H, kf.R = model["F"], model["Q"], model["H"], model["R"]
+    (x, P), other = _pair()
+    kf.x, kf.P = x[:, None], P
+    result = kf.fuse(other, horizon=5)
+    direct = fuse(_pair(), "ci", horizon=5, model=model)
+    np.testing.assert_array_equal(result.P, direct.P)
+    assert result.info["horizon"]["steps"] == 5
+
+
+@pytest.mark.parametrize("kwargs, error, message", [
+    ({"method": "ei", "horizon": 3, "model": "m"}, ValueError, "does not support horizon="),
+    ({"method": "ci", "horizon": 3}, ValueError, "needs the model"),
+    ({"method": "ci", "model": {"F": np.eye(2), "Q": np.eye(2)}}, ValueError,
+     "give horizon= too"),
+    ({"method": "ci", "horizon": 3, "model": "m", "omega": 0.5}, ValueError,
+     "fixes the weights"),
+    ({"method": "pci", "horizon": 3, "model": "m"}, ValueError,
+     "needs a correlation coefficient bound"),
+    ({"method": "ci", "horizon": -1}, ValueError, "horizon"),
+    ({"method": "ci", "horizon": 3, "model": {"F": np.eye(2)}}, ValueError, "F and Q"),
+])
+def test_fuse_horizon_errors_are_named(kwargs, error, message):
+    if kwargs.get("model") == "m":
+        kwargs["model"] = _model()
+    with pytest.raises(error, match=message):
+        fuse(_pair(), **kwargs)
+
+
+def test_no_module_imports_another_modules_underscore_names():
+    """Shared helpers live in named private modules under public names."""
+    import ast
+    import pathlib
+
+    root = pathlib.Path(cifilter.__file__).parent
+    offences = []
+    for path in root.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module is not None and (
+                    node.level > 0 or node.module.startswith("cifilter")):
+                for alias in node.names:
+                    if alias.name.startswith("_"):
+                        offences.append(f"{path.relative_to(root)}: {node.module}.{alias.name}")
+    assert not offences, "\n".join(offences)
