@@ -213,13 +213,12 @@ def newton_delta(L_inv, rho, tol, max_iter):
     the boundary of the simplex (an ignored estimate) are exact. Each problem stops when
     its certified gap (:func:`relative_gap`) is at most ``tol``.
 
-    Positive bounds below ``NEWTON_RHO_FLOOR`` are raised to it for the Newton phase
-    only: near the optimum ``delta_i ~ sqrt(rho_i)`` the curvature grows like
-    ``rho_i^(-1/2)`` and would swamp the other directions (or overflow). Problems whose
+    Positive bounds below ``NEWTON_RHO_FLOOR`` are raised to it for the Newton phase only
+    (why: ``docs/methods/pci.rst``, "The floor of rho in the Newton phase"); problems whose
     gap under the true bounds is then above ``tol`` continue with the sweeps of Algorithm 2
-    (:func:`alternating_delta`), whose multiplicative step (25) moves such a
-    ``delta_i`` to its scale at once. Returns ``delta`` and the iterations (Newton steps
-    plus sweeps) per problem.
+    (:func:`alternating_delta`). Two estimates run the interval Newton method of
+    two-estimate CI on ``delta = (t, 1 - t)``. Returns ``delta`` and the iterations
+    (Newton steps plus sweeps) per problem.
     """
     true_rho = rho
     batch, count = rho.shape[:-1], rho.shape[-1]
