@@ -28,7 +28,12 @@ from ._linalg import (
     lower_inverse_single,
     symmetrize,
 )
-from ._optimize import minimize_convex_interval, minimize_convex_scalar, minimize_convex_simplex
+from ._optimize import (
+    interval_gap,
+    minimize_convex_interval,
+    minimize_convex_scalar,
+    minimize_convex_simplex,
+)
 
 __all__ = ["FAST_OMEGA_RULES", "optimal_weights"]
 
@@ -150,7 +155,7 @@ def _diagonalised_weights(est, kind, W, L1_inv):
         omega, iterations, _ = minimize_convex_interval(derivatives, size, scale=scale)
         omega = np.where(usable & np.isfinite(omega), omega, 0.5)
         slope, _ = derivatives(omega, np.arange(size))
-        gap = omega * np.maximum(slope, 0.0) + (1.0 - omega) * np.maximum(-slope, 0.0)
+        gap = interval_gap(omega, slope)
         if kind != "det":
             gap = gap / (c * (a + 1.0) / (1.0 + omega[:, None] * a)).sum(axis=-1)
         spread = lam_flat.max(axis=-1) / lam_flat.min(axis=-1)
@@ -344,7 +349,7 @@ def _single_pair(est, kind, W):
     derivative = _pair_derivative(a, c, kind)
     omega, iterations, _ = minimize_convex_scalar(derivative, scale=scale)
     slope, _ = derivative(omega)
-    gap = omega * max(slope, 0.0) + (1.0 - omega) * max(-slope, 0.0)
+    gap = interval_gap(omega, slope)
     if kind != "det":
         gap /= sum(ck * (ak + 1.0) / (1.0 + omega * ak) for ck, ak in zip(c, a))
     if not math.isfinite(gap):

@@ -10,12 +10,38 @@ import math
 
 import numpy as np
 
-__all__ = ["minimize_convex_interval", "minimize_convex_scalar", "minimize_convex_simplex"]
+__all__ = [
+    "frank_wolfe_gap",
+    "interval_gap",
+    "minimize_convex_interval",
+    "minimize_convex_scalar",
+    "minimize_convex_simplex",
+]
 
 # Relative cut-off of the pseudo-inverse of the normalised KKT system: directions whose
 # curvature is at the rounding level of the Hessian (exact ties) get no step, curvature
 # above it (nearly tied inputs, ill-conditioned ones) is resolved.
 _RCOND = 1e-13
+
+
+def frank_wolfe_gap(w, gradient):
+    """``sum_i w_i g_i - min_i g_i`` (..., ): a certified bound on ``f(w) - min f``.
+
+    For ``f`` convex on the probability simplex with gradient ``g`` at ``w`` (..., N),
+    ``f(v) >= f(w) + g . (v - w)`` and the right side is smallest at the vertex of the
+    smallest ``g_i``. Never negative (rounding is cut at zero).
+    """
+    along = np.einsum("...i,...i->...", w, gradient)
+    return np.maximum(along - gradient.min(axis=-1), 0.0)
+
+
+def interval_gap(t, slope):
+    """:func:`frank_wolfe_gap` on the segment ``(t, 1 - t)`` from ``f'(t)``.
+
+    ``t max(f', 0) + (1 - t) max(-f', 0)``, written with ``abs`` so that it serves numpy
+    arrays and Python floats alike.
+    """
+    return 0.5 * (abs(slope) + (2.0 * t - 1.0) * slope)
 
 
 def minimize_convex_interval(derivatives, size, *, scale, xtol=1e-13, max_iter=100):
@@ -249,7 +275,7 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
 
         if gtol > 0.0:
             previous_gap = gap
-            gap = np.einsum("...i,...i->...", w, g) - g.min(axis=-1)
+            gap = frank_wolfe_gap(w, g)
             certified = active & (gap <= gtol * (1.0 if absolute_gap else np.abs(f)))
             done |= certified
             active = active & ~certified
