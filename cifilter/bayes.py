@@ -495,39 +495,6 @@ def _check_result(x_hat, P, gains, Ps):
                               "are too ill-conditioned for the Bayesian fusion")
 
 
-def _fuse_joint_samples(x, joints):
-    """Average the best linear unbiased fusion over given joint covariance samples.
-
-    ``x`` (..., N, n) and ``joints`` (..., M, N n, N n), every sample with the same diagonal
-    blocks. A test hook for the whitened formulation of :func:`bayesian_fusion`: the joints
-    are whitened with their diagonal blocks' Cholesky factors, ``R = D^-1 P_x D^-T``, and
-    fused as there. With ``K^(m)`` the gains of eq. (18) for sample m, ``K = mean_m K^(m)``,
-    ``x_hat = sum_i K_i x_i`` and ``P = K Pbar K^T`` with ``Pbar = mean_m P_x^(m)``.
-    Returns x_hat, P, gains and the mean of the per-sample BLUE covariances (eq. (19)).
-    """
-    count, n = x.shape[-2:]
-    dim = count * n
-    batch, M = joints.shape[:-3], joints.shape[-3]
-    joints = joints.reshape((-1, M, dim, dim))
-    x = np.broadcast_to(x, batch + (count, n)).reshape((-1, count, n))
-    problems = joints.shape[0]
-    P = np.stack([joints[:, 0, i * n:(i + 1) * n, i * n:(i + 1) * n] for i in range(count)], 1)
-    L = cholesky(P, "Ps")
-    whitening = _Whitening(L)
-    D_inv = np.zeros((problems, dim, dim))
-    E = whitening.E0 * whitening.S[:, None, :]
-    for i in range(count):
-        D_inv[:, i * n:(i + 1) * n, i * n:(i + 1) * n] = E[:, i * n:(i + 1) * n]
-    R = symmetrize(D_inv[:, None] @ joints @ _transpose(D_inv)[:, None])
-    H = cholesky(R, "whitened joint")
-    V0, P0 = _whitened_blue(H.reshape((-1, dim, dim)),
-                            np.repeat(whitening.E0, M, axis=0))
-    out = _finish(x, whitening, V0.reshape(problems, M, n, dim).mean(axis=1), R.mean(axis=1),
-                  P0.reshape(problems, M, n, n).mean(axis=1))
-    shapes = [(n,), (n, n), (count, n, n), (n, n)]
-    return tuple(a.reshape(batch + shape) for a, shape in zip(out, shapes))
-
-
 def bayesian_fusion(xs, Ps, dof=None, samples=100, rng=None):
     """Monte Carlo MMSE fusion of estimates with unknown cross-covariances (Wishart prior).
 

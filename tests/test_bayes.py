@@ -25,7 +25,6 @@ from cifilter import (
 )
 from cifilter import bayes as bayes_module
 from cifilter._linalg import IllConditionedError
-from cifilter.bayes import _fuse_joint_samples
 from cifilter.demo import run_demo
 from cifilter.reproduce import weng
 from cifilter.reproduce.weng import (
@@ -229,25 +228,31 @@ def test_sampler_bad_rng():
 
 
 # ----------------------------------------------------------------- the fusion
-def test_one_sample_equal_to_the_true_joint_gives_optimal_fusion():
-    """The internal hook with M = 1 and the true joint covariance is optimal_fusion exactly."""
-    g = np.random.default_rng(7)
-    joints = np.stack([random_spd(6, s) for s in range(5)])
-    xs = g.standard_normal((5, 3, 2))
-    x, P, gains, sample_P = _fuse_joint_samples(xs, joints[:, None])
-    best = optimal_fusion(xs, joints)
-    np.testing.assert_allclose(x, best.x, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(P, best.P, rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(sample_P, best.P, rtol=1e-12)
-    np.testing.assert_allclose(gains, best.gains, rtol=1e-12, atol=1e-12)
+def test_fusion_is_the_average_of_the_blue_over_the_same_seeds_samples():
+    """bayesian_fusion averages the gains of eq. (18) over the joints that
+    sample_joint_covariances draws with the same seed (eqs. (46)-(53))."""
+    Ps = [random_spd(2, 60), random_spd(2, 61), random_spd(2, 62)]
+    xs = np.random.default_rng(63).standard_normal((3, 2))
+    for samples in (1, 25):
+        r = bayesian_fusion(xs, Ps, dof=9, samples=samples, rng=64)
+        joints = sample_joint_covariances(Ps, 9, samples, rng=64)
+        each = [optimal_fusion(xs, joint) for joint in joints]
+        np.testing.assert_allclose(r.gains, np.mean([e.gains for e in each], axis=0),
+                                   rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(r.info["sample_P_mean"], np.mean([e.P for e in each], axis=0),
+                                   rtol=1e-10, atol=1e-12)
+        if samples == 1:  # one sample: exactly the optimal fusion with that joint
+            np.testing.assert_allclose(r.x, each[0].x, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(r.P, each[0].P, rtol=1e-10, atol=1e-12)
 
 
 def test_covariance_is_mean_blue_covariance_plus_spread():
     """P = K Pbar K^T = mean_m P_0^(m) + mean_m (K - K^(m)) P^(m) (K - K^(m))^T (Notes)."""
     Ps = [random_spd(2, 70), random_spd(2, 71), random_spd(2, 72)]
-    joints = sample_joint_covariances(Ps, 8, 30, rng=73)
     xs = np.random.default_rng(74).standard_normal((3, 2))
-    x, P, K, sample_P = _fuse_joint_samples(xs, joints)
+    r = bayesian_fusion(xs, Ps, dof=8, samples=30, rng=73)
+    joints = sample_joint_covariances(Ps, 8, 30, rng=73)
+    K, P, sample_P = r.gains, r.P, r.info["sample_P_mean"]
     spread = np.zeros((2, 2))
     for joint in joints:
         single = optimal_fusion(xs, joint)
@@ -255,18 +260,7 @@ def test_covariance_is_mean_blue_covariance_plus_spread():
         spread += D @ joint @ D.T / len(joints)
     np.testing.assert_allclose(P, sample_P + spread, rtol=1e-9, atol=1e-12)
     assert_psd(P - sample_P, what="P - mean BLUE covariance")
-    np.testing.assert_allclose(x, sum(K[i] @ xs[i] for i in range(3)), rtol=1e-12)
-
-
-def test_fusion_hook_batched_equals_per_item():
-    Ps = np.stack([np.stack([random_spd(2, 5 * b + i) for i in range(2)]) for b in range(4)])
-    joints = sample_joint_covariances(Ps, 6, 20, rng=80)
-    xs = np.random.default_rng(81).standard_normal((4, 2, 2))
-    batched = _fuse_joint_samples(xs, joints)
-    for b in range(4):
-        single = _fuse_joint_samples(xs[b], joints[b])
-        for got, want in zip(batched, single):
-            np.testing.assert_allclose(got[b], want, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(r.x, sum(K[i] @ xs[i] for i in range(3)), rtol=1e-12)
 
 
 def test_equal_scalar_variances_by_hand():
