@@ -648,8 +648,10 @@ def _ei_information_one(est, eps, mutual_mean):
     x = gains[0] @ est.x[0] + gains[1] @ est.x[1]
     tie = np.abs(np.log(d)) <= eps
     e = a - b
-    relevant = tie if mutual_mean == "sijs-lazar" else True
-    psi = 0.0 if np.all((e == 0.0) | ~relevant) else np.inf
+    agree = e == 0.0
+    if mutual_mean == "sijs-lazar":
+        agree |= ~tie
+    psi = 0.0 if agree.all() else np.inf
     info = {"common_x": T @ m, "common_P": common_P, "independent_information": information,
             "independent_information_vector": eta @ T_inv, "psi": np.array(psi),
             "ties": np.count_nonzero(tie)}
