@@ -566,9 +566,10 @@ _dgeqrf, _dorgqr = lapack.dgeqrf, lapack.dorgqr
 
 
 def _factor(M, name):
-    """Lower Cholesky factor of one SPD matrix (LAPACK directly; errors as ``cholesky``)."""
+    """Lower Cholesky factor of one SPD matrix with finite entries (LAPACK directly;
+    on failure the error of ``cholesky``)."""
     L, info = _dpotrf(M, lower=1)
-    if info != 0 or not np.isfinite(L).all():
+    if info != 0:
         return cholesky(M, name)  # raises with the message of the failure
     return L
 
@@ -622,38 +623,53 @@ def _whiten_one(est, factor):
 def _ei_information_one(est, eps, mutual_mean):
     """EI with the information regulariser for one problem: x, P, gains and info.
 
-    The formulas of :func:`fuse_diagonal`, :func:`psi_at_ei` and :func:`to_original`
-    (diagonal case) written for 2-D arrays.
+    The formulas of :func:`fuse_diagonal` (with :func:`mean_ratio`), :func:`psi_at_ei`
+    and :func:`to_original` (diagonal case) written for 2-D arrays.
     """
     w = _whiten_one(est, True)
-    d, a, b, T, T_inv = w.d, w.a, w.b, w.T, w.T_inv
+    d, a, b, T, T_inv, F = w.d, w.a, w.b, w.T, w.T_inv, w.F
+    n = d.shape[0]
     lam = 1.0 / d
     alpha, beta = np.maximum(0.0, 1.0 - lam), np.maximum(0.0, lam - 1.0)
-    R_a = mean_ratio(w, eps, mutual_mean)
+    regular = 0.5 * eps * (1.0 + lam)
+    w_a, w_b = alpha + regular, beta + regular
+    total = w_a + w_b
+    own = w_a if mutual_mean == "as-printed" else w_b
+    if total.all():
+        R_a = own / total
+    else:
+        R_a = np.where(total > 0, own / np.where(total > 0, total, 1.0), 0.5)
     R_b = 1.0 - R_a
     m = R_a * a + R_b * b
     k_a = np.where(d >= 1.0, 1.0 - R_a / np.maximum(d, 1.0), d * R_b)
     common_info = np.minimum(1.0, lam)
-    eta = np.array([a - common_info * m, lam * b - common_info * m])
-    F = w.F
+    eta = np.empty((2, n))
+    eta[0] = a - common_info * m
+    eta[1] = lam * b - common_info * m
     P = F @ F.T
-    P = 0.5 * (P + P.T)
+    P += P.T
+    P *= 0.5
     common_P = w.S - P
-    common_P = 0.5 * (common_P + common_P.T)
-    K_a = (T * k_a) @ T_inv
-    gains = np.array([K_a, np.eye(K_a.shape[-1]) - K_a])
-    roots = np.sqrt(np.array([alpha, beta]))[:, :, None] * T_inv  # (2, n, n)
+    common_P += common_P.T
+    common_P *= 0.5
+    gains = np.empty((2, n, n))
+    K_a = np.matmul(T * k_a, T_inv, out=gains[0])
+    np.negative(K_a, out=gains[1])
+    gains[1].flat[::n + 1] += 1.0
+    roots = np.empty((2, n, 1))
+    roots[0, :, 0], roots[1, :, 0] = alpha, beta
+    roots = np.sqrt(roots) * T_inv  # (2, n, n)
     information = np.swapaxes(roots, -1, -2) @ roots
-    information = 0.5 * (information + np.swapaxes(information, -1, -2))
-    x = gains[0] @ est.x[0] + gains[1] @ est.x[1]
+    information += np.swapaxes(information, -1, -2)
+    information *= 0.5
+    x = K_a @ est.x[0] + gains[1] @ est.x[1]
     tie = np.abs(np.log(d)) <= eps
-    e = a - b
-    agree = e == 0.0
+    agree = a == b
     if mutual_mean == "sijs-lazar":
         agree |= ~tie
-    psi = 0.0 if agree.all() else np.inf
     info = {"common_x": T @ m, "common_P": common_P, "independent_information": information,
-            "independent_information_vector": eta @ T_inv, "psi": np.array(psi),
+            "independent_information_vector": eta @ T_inv,
+            "psi": np.array(0.0 if agree.all() else np.inf),
             "ties": np.count_nonzero(tie)}
     return x, P, gains, info
 
