@@ -180,14 +180,10 @@ def input_sets(dof, sets, rng=None, *, draws=1, n=2):
 
 
 def _fuse_sets(s, alpha, mutual_mean, regularizer, eps):
-    xs = s.x
-    Ps = np.broadcast_to(s.P, xs.shape[:-2] + s.P.shape[-3:])
     options = dict(eps=eps, mutual_mean=mutual_mean, regularizer=regularizer)
-    if alpha is None:
-        return ellipsoidal_intersection(xs[..., 0, :], Ps[..., 0, :, :], xs[..., 1, :],
-                                        Ps[..., 1, :, :], **options)
-    return pc_ellipsoidal_intersection(xs[..., 0, :], Ps[..., 0, :, :], xs[..., 1, :],
-                                       Ps[..., 1, :, :], alpha=alpha, **options)
+    if alpha is None:  # the (xs, Ps) form: the covariances broadcast against the means
+        return ellipsoidal_intersection(s.x, s.P, **options)
+    return pc_ellipsoidal_intersection(s.x, s.P, alpha=alpha, **options)
 
 
 def table_one(dofs=(2, 10, 100), sets=35, rng=None, *, mutual_mean="as-printed",
