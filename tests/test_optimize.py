@@ -487,16 +487,21 @@ def test_simplex_quadratics_reach_the_exact_minimum(args):
     A = 0.5 * (A + A.T)
     evaluate, objective = quadratic(A, c)
     best = exact_quadratic_minimum(A, c)
+
+    def rounding(w):  # of evaluating f: n eps |r|^T |A| |r| (cancellation for large cond A)
+        r = np.abs(w - c)
+        return 4.0 * count * EPS * (r @ np.abs(A) @ r)
+
     w, _, converged = minimize_convex_simplex(evaluate, objective, count, ())
     assert converged
-    assert objective(w) - best <= 2e-12 * best
+    assert objective(w) - best <= 1e-12 * best + rounding(w)
     # With a gap test the tolerance must lie above the rounding of the gradient (about
     # cond(A) eps |A (w - c)|, up to 1e-9 here; f >= 1).
     w, _, converged = minimize_convex_simplex(evaluate, objective, count, (), gtol=1e-8)
     assert converged
     _, g, _ = evaluate(w)
     assert frank_wolfe_gap(w, g) <= 1e-8 * objective(w)
-    assert objective(w) - best <= 1e-8 * objective(w)
+    assert objective(w) - best <= 1e-8 * objective(w) + rounding(w)
 
 
 def test_euclidean_projection_reference_is_right():
@@ -509,3 +514,23 @@ def test_euclidean_projection_reference_is_right():
         assert ok
         np.testing.assert_allclose(w, euclidean_projection(c), rtol=0, atol=1e-12)
         assert objective(w) == pytest.approx(exact_quadratic_minimum(np.eye(4), c), abs=1e-13)
+
+
+@pytest.mark.xfail(strict=True, reason="minimize_convex_simplex stalls far from the optimum: "
+                   "a weight released at zero whose face Newton step points below zero "
+                   "blocks the step at t = 0 and the problem is stopped as 'stalled at the "
+                   "rounding level' (gap 4864 at f = 6067; also with gtol)")
+@pytest.mark.parametrize("gtol", [0.0, 1e-10])
+def test_simplex_released_weight_with_a_negative_newton_step_does_not_stall(gtol):
+    L = np.array([[95.6, 0.0, 0.0, 0.0, 0.0],
+                  [159.9, 97.1, 0.0, 0.0, 0.0],
+                  [-283.3, -46.6, 29.6, 0.0, 0.0],
+                  [-119.1, 46.3, 9.8, 5.7, 0.0],
+                  [284.6, 91.6, 4.7, 4.0, 3.1]])
+    A, c = L @ L.T, np.array([-0.1, -0.4, -2.9, 1.9, -2.6])  # cond(A) = 2.2e5
+    evaluate, objective = quadratic(A, c)
+    best = exact_quadratic_minimum(A, c)
+    w, _, converged = minimize_convex_simplex(evaluate, objective, 5, (), gtol=gtol)
+    # (today: w = [0, 0, 0.662, 0.338, 0], unconverged, f - min f = 532, gap 4864)
+    assert converged
+    assert objective(w) - best <= 1e-9 * best
