@@ -1,4 +1,4 @@
-"""Internal batched linear algebra and input validation."""
+"""Internal batched linear algebra (cifilter._linalg); input checking is in test_validation."""
 
 import numpy as np
 import pytest
@@ -14,7 +14,6 @@ from cifilter._linalg import (
     mahalanobis_sq,
     solve_lower,
 )
-from cifilter._validation import as_estimates, as_rng, check_scalar, check_weights
 
 rng = np.random.default_rng(7)
 
@@ -66,42 +65,6 @@ def test_cholesky_names_the_argument_and_index():
         cholesky(P, "P")
     with pytest.raises(ValueError, match="not positive definite"):
         cholesky(np.diag([np.nan, 1.0]), "P")
-
-
-@pytest.mark.parametrize("x, column", [
-    ([np.zeros(3), np.ones(3)], False),
-    ([np.zeros((3, 1)), np.ones(3)], True),
-    (np.zeros((2, 3)), False),
-    (np.zeros((2, 3, 1)), True),
-    (np.zeros((7, 2, 3)), False),
-    (np.zeros((7, 2, 3, 1)), True),
-])
-def test_vector_styles_are_recognised(x, column):
-    est = as_estimates(x, np.stack([np.eye(3)] * 2))
-    assert est.column is column
-    assert est.x.shape[-2:] == (2, 3)
-
-
-def test_one_dimensional_styles_are_unambiguous():
-    P = np.ones((2, 1, 1))
-    assert not as_estimates(np.zeros((2, 1)), P).column  # two scalars in a row
-    assert as_estimates(np.zeros((2, 1, 1)), P).column  # two 1x1 columns
-    est = as_estimates(np.zeros((5, 2, 1)), P)  # a batch of five
-    assert not est.column and est.batch_shape == (5,)
-
-
-def test_helpers_reject_bad_scalars_weights_and_rngs():
-    with pytest.raises(ValueError, match=r"alpha must lie in \(0, 1\)"):
-        check_scalar(1.0, "alpha", low=0, high=1, low_open=True, high_open=True)
-    with pytest.raises(TypeError, match="alpha must be a real number"):
-        check_scalar("0.1", "alpha")
-    with pytest.raises(ValueError, match="finite"):
-        check_scalar(float("nan"), "alpha")
-    with pytest.raises(ValueError, match="simplex"):
-        check_weights([0.7, 0.7], 2)
-    with pytest.raises(TypeError, match="rng"):
-        as_rng("seed")
-    assert as_rng(3).integers(1000) == np.random.default_rng(3).integers(1000)
 
 
 def rotated(eigenvalues, angle=0.3):
