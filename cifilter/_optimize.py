@@ -339,10 +339,16 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         done |= converged_now
         iterations += active & ~converged_now
 
-        # Where the face is solved, release every fixed weight whose gradient is below the
-        # level of the free ones (all at once: ties between equal inputs stay fair).
+        # Where the face is solved, release the fixed weight whose gradient is furthest
+        # below the level of the free ones, with every weight tied with it (so that equal
+        # inputs stay equal). One at a time, as in the primal active-set method: from the
+        # optimum of a face, the Newton step after releasing the most negative multiplier
+        # increases that weight; releasing several at once can give a step that makes one
+        # of them negative at once (it then blocks at length zero).
         releasing = active & small & release_any
-        free = free | (releasing[..., None] & (deficit < -1e-12 * g_scale[..., None]))
+        most = deficit.min(axis=-1, keepdims=True)
+        chosen = (deficit < -1e-12 * g_scale[..., None]) & (deficit <= most * (1.0 - 1e-9))
+        free = free | (releasing[..., None] & chosen)
 
         if stuck.any():
             # Every vertex within rounding of the smallest gradient gets the same share,
@@ -359,6 +365,20 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(free & (d < 0), w / -d, np.inf)
         t_max = ratio.min(axis=-1)
+        # A weight just released at zero whose Newton step on the enlarged face points below
+        # zero blocks that step at length zero (the affine optimum of the face lies outside
+        # the simplex), although releasing it decreases f. Step towards the vertices of
+        # smallest gradient instead (a feasible descent direction, g.d = min g - w.g < 0).
+        blocked_at_zero = stepping & (t_max <= 0.0)
+        if blocked_at_zero.any():
+            best = g <= g.min(axis=-1, keepdims=True) + 1e-12 * g_scale[..., None]
+            target = best / best.sum(axis=-1, keepdims=True)
+            d = np.where(blocked_at_zero[..., None], target - w, d)
+            slope = np.where(blocked_at_zero, np.einsum("...i,...i->...", g, d), slope)
+            free = free | (blocked_at_zero[..., None] & best)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(free & (d < 0), w / -d, np.inf)
+            t_max = np.where(blocked_at_zero, ratio.min(axis=-1), t_max)
         t = np.minimum(1.0, t_max)
         if extend.any():
             with np.errstate(divide="ignore", invalid="ignore"):
