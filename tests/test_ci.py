@@ -369,24 +369,3 @@ def test_outputs_are_spd_and_permutation_invariant(Ps, random):
 def test_trace_optimum_is_not_above_either_input(P1, P2):
     r = covariance_intersection([np.zeros(2)] * 2, [P1, P2])
     assert np.trace(r.P) <= min(np.trace(P1), np.trace(P2)) * (1 + 1e-12)
-
-
-def test_simplex_solver_stops_when_the_decrement_is_below_rounding():
-    """A face solved to working precision stops, although the Newton step exceeds xtol.
-
-    The objective is flat to rounding (every trial point looks 1e-14 worse: noise), the
-    Newton step is 1e-6 but its decrement -g.d is 1e-20: no line search can confirm it.
-    """
-    from cifilter._optimize import minimize_convex_simplex
-
-    def evaluate(w):
-        g = np.stack([np.full(w.shape[:-1], 1e-14), np.full(w.shape[:-1], -1e-14)], axis=-1)
-        H = np.broadcast_to(1e-8 * np.eye(2), w.shape + (2,)).copy()
-        return np.ones(w.shape[:-1]), g, H
-
-    def objective(w):
-        return np.ones(w.shape[:-1]) + 1e-14
-
-    w, iterations, converged = minimize_convex_simplex(evaluate, objective, 2, (3,))
-    assert converged.all() and iterations.max() <= 1
-    np.testing.assert_allclose(w.sum(axis=-1), 1.0)

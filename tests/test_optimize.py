@@ -531,3 +531,22 @@ def test_simplex_released_weight_with_a_negative_newton_step_does_not_stall(gtol
     # weights released at once, the face step made one negative and blocked at length 0)
     assert converged
     assert objective(w) - best <= 1e-9 * best
+
+
+def test_simplex_solver_stops_when_the_decrement_is_below_rounding():
+    """A face solved to working precision stops, although the Newton step exceeds xtol.
+
+    The objective is flat to rounding (every trial point looks 1e-14 worse: noise), the
+    Newton step is 1e-6 but its decrement -g.d is 1e-20: no line search can confirm it.
+    """
+    def evaluate(w):
+        g = np.stack([np.full(w.shape[:-1], 1e-14), np.full(w.shape[:-1], -1e-14)], axis=-1)
+        H = np.broadcast_to(1e-8 * np.eye(2), w.shape + (2,)).copy()
+        return np.ones(w.shape[:-1]), g, H
+
+    def objective(w):
+        return np.ones(w.shape[:-1]) + 1e-14
+
+    w, iterations, converged = minimize_convex_simplex(evaluate, objective, 2, (3,))
+    assert converged.all() and iterations.max() <= 1
+    np.testing.assert_allclose(w.sum(axis=-1), 1.0)
