@@ -357,24 +357,27 @@ def _single_pair(est, kind, W):
     # Assembly as in _fuse_diagonalised: K_1 = omega T diag(e) U^T L_1^-1, K_2 = I - K_1,
     # P = K_1 P_1 K_1^T / omega + K_2 P_2 K_2^T / (1 - omega), the bound of these gains.
     n = len(a)
-    identity = _identity(n)
-    if omega == 1.0:
-        K1 = identity
-    else:
-        e = lam / (1.0 + omega * (lam - 1.0))
-        K1 = omega * ((T * e) @ (U.T @ L1_inv))
-    K2 = identity - K1
-    P = np.zeros((n, n))
-    if omega > 0.0:
-        M = (K1 @ L1) / math.sqrt(omega)
-        P += M @ M.T
-    if omega < 1.0:
-        M = (K2 @ L2) / math.sqrt(1.0 - omega)
-        P += M @ M.T
-    x1, x2 = est.x[0], est.x[1]
-    x = x2 + K1 @ (x1 - x2)
     gains = np.empty((2, n, n))
-    gains[0], gains[1] = K1, K2
+    if omega == 1.0:
+        gains[0] = _identity(n)
+    else:
+        e = [value / (1.0 + omega * ak) for value, ak in zip(lam_list, a)]
+        np.matmul(T * e, U.T @ L1_inv, out=gains[0])
+        gains[0] *= omega
+    K1 = gains[0]
+    np.subtract(_identity(n), K1, out=gains[1])
+    if omega == 0.0:
+        M = gains[1] @ L2
+        P = M @ M.T
+    elif omega == 1.0:
+        M = K1 @ L1
+        P = M @ M.T
+    else:
+        M1 = K1 @ L1
+        M2 = gains[1] @ L2
+        P = (M1 @ M1.T) / omega + (M2 @ M2.T) / (1.0 - omega)
+    x1, x2 = est.x
+    x = x2 + K1 @ (x1 - x2)
     weights = np.array([omega, 1.0 - omega])
     info = {"iterations": np.array(iterations), "converged": np.array(gap <= GAP_TOL),
             "gap": np.array(gap), "solver": "diagonalise"}
