@@ -549,10 +549,12 @@ def test_filter_fuse_with_horizon_uses_its_own_model(criterion):
     expected = optimal_omega(PA, PB, F_DYN, Q_DYN, H_A, R_A, 10, criterion)
     assert result.omega[0] == pytest.approx(float(expected.omega), abs=1e-12)
     assert kf.last_fusion is result
-    assert result.info["rule"] == "horizon" and result.info["horizon"] == 10
-    assert result.info["model"] == "filter"
-    assert result.info["horizon_value"] == pytest.approx(float(expected.value), rel=1e-12)
-    assert result.info["horizon_value_recursive"] >= result.info["horizon_value"]
+    chosen = result.info["horizon"]
+    assert result.info["rule"] == "horizon" and chosen["steps"] == 10
+    assert chosen["criterion"] == criterion
+    assert chosen["value"] == pytest.approx(float(expected.value), rel=1e-12)
+    assert chosen["value_recursive"] >= chosen["value"]
+    assert result.info["converged"] == chosen["converged"] and result.info["gap"] == chosen["gap"]
     plain = covariance_intersection([np.array([1.0, 2.0]), other[0]], [PA, PB],
                                     omega=float(expected.omega))
     np.testing.assert_allclose(kf.x[:, 0], plain.x, rtol=1e-12)
@@ -562,22 +564,25 @@ def test_filter_fuse_with_horizon_uses_its_own_model(criterion):
     np.testing.assert_array_equal(other[1], other_copy[1])
 
 
-def test_filter_fuse_horizon_zero_equals_plain_ci_and_future_model_overrides():
+def test_filter_fuse_horizon_zero_equals_plain_ci_and_model_overrides():
     PA, PB = local_bounds_at_zero()
     kf, plain = dynamic_filter("A"), dynamic_filter("A")
     kf.P, plain.P = PA.copy(), PA.copy()
     r0 = kf.fuse((np.zeros(2), PB), horizon=0, criterion="det")
     rp = plain.fuse((np.zeros(2), PB), criterion="det")
-    assert r0.omega[0] == pytest.approx(rp.omega[0], abs=1e-12)
-    # filter A fusing as if it were filter B (the future model) picks B's omega
+    np.testing.assert_array_equal(r0.omega, rp.omega)
+    # filter A fusing as if it were filter B (the model) picks B's omega
     kf.P = PA.copy()
-    future = dict(F=F_DYN, Q=Q_DYN, H=H_B, R=R_B)
-    r = kf.fuse((np.zeros(2), PB), horizon=30, future=future, criterion="det")
-    assert r.info["model"] == "future"
+    model = dict(F=F_DYN, Q=Q_DYN, H=H_B, R=R_B)
+    r = kf.fuse((np.zeros(2), PB), horizon=30, model=model, criterion="det")
     assert r.omega[0] == pytest.approx(0.853, abs=1e-3)
     kf.P = PA.copy()
-    r_obj = kf.fuse((np.zeros(2), PB), horizon=30, future=dynamic_filter("B"), criterion="det")
+    r_obj = kf.fuse((np.zeros(2), PB), horizon=30, model=dynamic_filter("B"), criterion="det")
     assert r_obj.omega[0] == pytest.approx(r.omega[0], abs=1e-12)
+    kf.P = PA.copy()
+    with pytest.warns(DeprecationWarning, match="model="):
+        r_old = kf.fuse((np.zeros(2), PB), horizon=30, future=model, criterion="det")
+    np.testing.assert_array_equal(r_old.omega, r.omega)
 
 
 def test_filter_fuse_with_horizon_and_several_estimates():
@@ -591,13 +596,13 @@ def test_filter_fuse_with_horizon_and_several_estimates():
 
 
 @pytest.mark.parametrize("kwargs, error, match", [
-    (dict(horizon=2, method="naive"), ValueError, "needs method='ci'"),
+    (dict(horizon=2, method="naive"), ValueError, "does not support horizon="),
     (dict(horizon=2, omega=0.3), ValueError, "give one"),
-    (dict(future=dict(F=F_DYN, Q=Q_DYN)), ValueError, "give horizon="),
-    (dict(horizon=2, future=dict(F=F_DYN)), ValueError, "at least F and Q"),
-    (dict(horizon=2, future=dict(F=F_DYN, Q=Q_DYN, X=1)), ValueError, "unknown entries"),
+    (dict(model=dict(F=F_DYN, Q=Q_DYN)), ValueError, "give horizon="),
+    (dict(horizon=2, model=dict(F=F_DYN)), ValueError, "at least F and Q"),
+    (dict(horizon=2, model=dict(F=F_DYN, Q=Q_DYN, X=1)), ValueError, "unknown entries"),
     (dict(horizon=-1), ValueError, "horizon must be >= 0"),
-    (dict(horizon=2, future=dict(F=np.eye(3), Q=Q_DYN)), ValueError, "F must have shape"),
+    (dict(horizon=2, model=dict(F=np.eye(3), Q=Q_DYN)), ValueError, "F must have shape"),
     (dict(horizon=2, criterion="max"), ValueError, "criterion"),
     # partial-correlation CI (tests/test_horizon_pci.py)
     (dict(method="pci", horizon=2), ValueError, "needs a correlation coefficient bound"),
@@ -607,8 +612,8 @@ def test_filter_fuse_with_horizon_and_several_estimates():
     (dict(method="pci", rho=[0.1, 0.2, 0.3], horizon=2), ValueError, "rho must be a scalar"),
     (dict(method="pci", rho=0.5, horizon=2, criterion="max"), ValueError, "criterion"),
     (dict(method="pci", rho=0.5, horizon=-1), ValueError, "horizon must be >= 0"),
-    (dict(method="pci", rho=0.5, future=dict(F=F_DYN, Q=Q_DYN)), ValueError, "give horizon="),
-    (dict(method="naive", horizon=2), ValueError, "needs method='ci' .or 'pci'"),
+    (dict(method="pci", rho=0.5, model=dict(F=F_DYN, Q=Q_DYN)), ValueError, "give horizon="),
+    (dict(method="naive", horizon=2), ValueError, "'ci', 'pci'"),
 ])
 def test_filter_fuse_with_horizon_is_atomic_on_bad_input(kwargs, error, match):
     kf = dynamic_filter("A")
@@ -621,15 +626,15 @@ def test_filter_fuse_with_horizon_is_atomic_on_bad_input(kwargs, error, match):
     assert kf.last_fusion is None
 
 
-def test_extended_filter_needs_a_future_model():
+def test_extended_filter_needs_a_model():
     ekf = ExtendedKalmanFilter(dim_x=2, dim_z=1)
     ekf.P = np.diag([1.0, 2.0])
     with pytest.raises(ValueError, match="no matrix H"):
         ekf.fuse((np.zeros(2), np.eye(2)), horizon=3)
     assert ekf.last_fusion is None
     r = ekf.fuse((np.zeros(2), np.eye(2)), horizon=3,
-                 future=dict(F=ekf.F, Q=ekf.Q, H=np.array([[1.0, 0.0]]), R=ekf.R))
-    assert r.info["horizon"] == 3 and ekf.last_fusion is r
+                 model=dict(F=ekf.F, Q=ekf.Q, H=np.array([[1.0, 0.0]]), R=ekf.R))
+    assert r.info["horizon"]["steps"] == 3 and ekf.last_fusion is r
 
 
 # ----------------------------------------------------------------- reproduction command

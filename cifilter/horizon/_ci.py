@@ -13,7 +13,7 @@ import numpy as np
 
 from .._ci_weights import optimal_weights
 from .._criteria import certified_gap
-from .._linalg import cho_inverse, cho_solve, cholesky, symmetrize
+from .._linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
 from .._optimize import minimize_convex_interval, minimize_convex_simplex
 from .._validation import Estimates
 from ._model import propagated_bound
@@ -27,26 +27,37 @@ def ci_fused_information(S, weights):
     return cho_inverse(cholesky(S_w, "fused information"))
 
 
-def _covariances_of(est, informations, Gamma):
-    """The CI problem's estimates: ``S_i^-1`` (``S_i = P_i^-1 + Gamma``), or ``est`` itself
-    where ``Gamma = 0`` (so that horizon 0 is the ``"ci"`` rule's problem bit for bit)."""
-    if not Gamma.any():
-        return est
-    S = symmetrize(informations + Gamma[..., None, :, :])
-    P = cho_inverse(cholesky(S, "P_i^-1 + Gamma"))
-    return Estimates(np.zeros(P.shape[:-1]), P, cholesky(P, "(P_i^-1 + Gamma)^-1"), False)
+def _ci_problem(est, informations, terms, kind, W):
+    """The CI problem ``(estimates, kind, W)`` whose optimum is the horizon optimum.
 
-
-def _trace_matrix(terms, kind, W):
-    """``(kind, W)`` of the CI problem ``tr(Psi^T W Psi S(w)^-1)``, normalised to max entry 1
-    (an all-zero one, a flat criterion, becomes the identity); unchanged where ``Psi = I``."""
-    n = terms.Psi.shape[-1]
-    if np.all(terms.Psi == np.eye(n)):
-        return kind, W
+    ``tr(W P_kappa) = tr(W P_c) + exp(2 s) tr(V S(w)^-1)`` with ``V = Psi^T W Psi``, and
+    ``log det P_kappa = log det S(w)^-1 + const`` where ``P_c = 0``: CI problems of the
+    matrices ``S_i^-1``. Where ``Gamma = 0`` these are the covariances themselves (so
+    horizon 0 is the ``"ci"`` rule's problem bit for bit). Otherwise the congruence with
+    the factor of the mean ``S_bar = L L^T``, ``S_i -> L^-1 S_i L^-T``, ``V -> L^-1 V L^-T``,
+    which changes neither criterion's minimiser, removes the scale ``Gamma`` shares between
+    the ``S_i`` (it grows without bound for observed unstable modes).
+    """
+    n = est.dim
+    if terms.Gamma.any():
+        S = informations + terms.Gamma[..., None, :, :]
+        L = cholesky(symmetrize(S.mean(axis=-3)), "mean of P_i^-1 + Gamma")
+        S = symmetrize(solve_lower(L[..., None, :, :], np.swapaxes(
+            solve_lower(L[..., None, :, :], S), -1, -2)))
+        P = cho_inverse(cholesky(S, "whitened P_i^-1 + Gamma"))
+        est = Estimates(np.zeros(P.shape[:-1]), P, cholesky(P, "(P_i^-1 + Gamma)^-1"), False)
+    if kind == "det":
+        return est, "det", None
+    if not terms.Gamma.any() and np.all(terms.Psi == np.eye(n)):
+        return est, kind, W
     base = np.eye(n) if kind == "trace" else W
-    V = symmetrize(np.swapaxes(terms.Psi, -1, -2) @ base @ terms.Psi)
-    size = np.abs(V).max(axis=(-2, -1), keepdims=True)
-    return "weighted-trace", np.where(size > 0, V / np.where(size > 0, size, 1.0), np.eye(n))
+    V = np.swapaxes(terms.Psi, -1, -2) @ base @ terms.Psi
+    if terms.Gamma.any():
+        V = solve_lower(L, np.swapaxes(solve_lower(L, V), -1, -2))
+    V = symmetrize(V)
+    size = np.abs(V).max(axis=(-2, -1), keepdims=True)  # all-zero: a flat criterion
+    return est, "weighted-trace", np.where(size > 0, V / np.where(size > 0, size, 1.0),
+                                           np.eye(n))
 
 
 def ci_horizon_weights(est, informations, terms, kind, W):
@@ -58,11 +69,7 @@ def ci_horizon_weights(est, informations, terms, kind, W):
     over its minimum (relative for the trace criteria, in log det for ``"det"``).
     """
     if kind != "det" or not terms.P_c.any():
-        problem = _covariances_of(est, informations, terms.Gamma)
-        if kind == "det":
-            weights, info, _ = optimal_weights(problem, "det", None)
-        else:
-            weights, info, _ = optimal_weights(problem, *_trace_matrix(terms, kind, W))
+        weights, info, _ = optimal_weights(*_ci_problem(est, informations, terms, kind, W))
         return weights, info
     S = symmetrize(informations + terms.Gamma[..., None, :, :])
     if est.count == 2:

@@ -24,7 +24,7 @@ from .._partial_correlation import (
 )
 from ._model import propagated_bound
 
-__all__ = ["delta_derivatives", "information_bound", "pci_horizon_delta"]
+__all__ = ["delta_problem", "information_bound", "pci_horizon_delta"]
 
 # The "pci" rule's defaults (cifilter.partial_ci), used for its problem at horizon 0.
 RULE_TOL, RULE_MAX_ITER = 1e-10, 100
@@ -135,16 +135,19 @@ def _problem(informations, terms, rho, weight):
     return _trace_problem(informations, terms.Gamma, rho, V) + (scale * size,)
 
 
-def delta_derivatives(informations, terms, rho, weight, delta):
-    """The solver's objective, gradient and Hessian in ``delta`` (..., N), (..., N, N).
+def delta_problem(informations, terms, rho, weight):
+    """``(objective, derivatives, factor)`` of the solver, for tests of its derivatives.
 
-    ``weight`` is ``W`` of ``tr(W P_kappa)`` or None for ``log det``; the objective is the
-    criterion up to an affine change that does not move the minimiser (see
-    :func:`_problem`). For the tests of the derivatives.
+    ``objective(delta)`` is the criterion up to a constant and the positive ``factor``;
+    ``derivatives(delta)`` its gradient (..., N) and Hessian (..., N, N) in ``delta``.
+    ``weight`` is ``W`` of ``tr(W P_kappa)`` or None for ``log det``.
     """
-    _, parts, _ = _problem(informations, terms, rho, weight)
-    f, g_w, H_w = parts(delta)
-    return (f,) + _chain(g_w, H_w, delta, rho)
+    objective, parts, factor = _problem(informations, terms, rho, weight)
+
+    def derivatives(delta):
+        return _chain(*parts(delta)[1:], delta, rho)
+
+    return objective, derivatives, factor
 
 
 def _is_rule_problem(terms, weight):
