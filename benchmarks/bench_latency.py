@@ -148,11 +148,14 @@ def run(tree=None, number=200, repeat=7):
         times = {}
         times["kf.fuse"] = _time(lambda: kf.fuse(other, method, **extra, **options),
                                  reset_kf, count, repeat)
+        front = dict(extra)
+        if horizon is not None:  # the front door takes the model of the steps after it
+            front["model"] = dict(F=F, Q=Q, H=H, R=R)
         try:
-            cifilter.fuse(both, method, **extra, **options)
+            cifilter.fuse(both, method, **front, **options)
             times["cifilter.fuse"] = _time(
-                lambda: cifilter.fuse(both, method, **extra, **options), nothing, count, repeat)
-        except TypeError:  # versions whose front door had no horizon=
+                lambda: cifilter.fuse(both, method, **front, **options), nothing, count, repeat)
+        except TypeError:  # versions whose front door had no horizon= (or model=)
             times["cifilter.fuse"] = float("nan")
         times["rule"] = _time(rule, nothing, count, repeat)
         rows.append((label, times))

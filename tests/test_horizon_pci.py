@@ -30,9 +30,9 @@ from test_horizon import (
 from worst_case import assert_bound_holds
 
 from cifilter import KalmanFilter, naive_fusion, partial_ci
+from cifilter.horizon import horizon_study, horizon_weights, optimal_omega, propagate_bound
 from cifilter.horizon._model import as_model, horizon_terms
 from cifilter.horizon._pci import delta_problem
-from cifilter.horizon import horizon_study, horizon_weights, optimal_omega, propagate_bound
 
 CRITERIA = ["det", "trace", "weighted"]
 
