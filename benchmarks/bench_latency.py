@@ -29,8 +29,9 @@ import numpy as np
 def _setup(tree):
     if tree:
         sys.path.insert(0, tree)
-    import cifilter
     from filterpy.kalman import KalmanFilter as FilterpyKF
+
+    import cifilter
 
     return cifilter, FilterpyKF
 
@@ -146,15 +147,17 @@ def run(tree=None, number=200, repeat=7):
         count = number // scale if scale > 1 else number
         extra = {} if horizon is None else {"horizon": horizon}
         times = {}
-        times["kf.fuse"] = _time(lambda: kf.fuse(other, method, **extra, **options),
-                                 reset_kf, count, repeat)
+        times["kf.fuse"] = _time(
+            lambda method=method, extra=extra, options=options: kf.fuse(
+                other, method, **extra, **options), reset_kf, count, repeat)
         front = dict(extra)
         if horizon is not None:  # the front door takes the model of the steps after it
             front["model"] = dict(F=F, Q=Q, H=H, R=R)
         try:
             cifilter.fuse(both, method, **front, **options)
             times["cifilter.fuse"] = _time(
-                lambda: cifilter.fuse(both, method, **front, **options), nothing, count, repeat)
+                lambda method=method, front=front, options=options: cifilter.fuse(
+                    both, method, **front, **options), nothing, count, repeat)
         except TypeError:  # versions whose front door had no horizon= (or model=)
             times["cifilter.fuse"] = float("nan")
         times["rule"] = _time(rule, nothing, count, repeat)
