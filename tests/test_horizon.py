@@ -769,6 +769,25 @@ def fused_bound_tolerance(Ps):
     return (64.0 * n * count + np.linalg.cond(Ps).max()) * np.finfo(float).eps
 
 
+def assert_propagation_agrees(P, fused_P, Ps, F, Q, H, R, horizon):
+    """``P`` (the horizon solver's bound) equals ``propagate_bound(fused_P, ...)``.
+
+    The fused P's own rounding, and the propagation's: two routes to a bound whose condition
+    number is cond(P) agree to about cond(P) eps relative to its norm (P = 1e12 I against
+    R = 1 gives cond ~ 1e11 from well-conditioned inputs). The reference route (Joseph
+    updates of F P F^T + Q) also loses eps ||prior|| absolutely: a prior of norm 3e9 (an
+    estimate ignored along a measured direction) updated to a bound of norm 20 is accurate
+    to only 1e-7 relative, while the solver's information form of the superposition
+    formula stays exact (checked at 60 digits).
+    """
+    history = propagate_bound(fused_P, F, Q, H, R, horizon, history=True)
+    prior = np.abs(F @ history[:-1] @ F.T + Q).max() if horizon else 0.0
+    eps = np.finfo(float).eps
+    tol = max(1e-7, fused_bound_tolerance(Ps), 64 * eps * np.linalg.cond(P),
+              64 * eps * prior / np.abs(P).max())
+    np.testing.assert_allclose(P, history[-1], rtol=tol, atol=tol * np.abs(P).max())
+
+
 def horizon_call_or_ill_conditioned(call, Ps, F, Q, H, R, horizon, rho=1.0):
     """``call()``, or None if it raises IllConditionedError naming the horizon for a problem
     whose propagated bound, at a vertex or the centre of the simplex, is beyond the
@@ -809,11 +828,7 @@ def test_horizon_weights_of_ill_conditioned_estimates_are_on_the_simplex_and_con
     np.linalg.cholesky(r.P)
     fused = covariance_intersection([np.zeros(n)] * count, Ps, omega=w)
     assert_bound_holds(fused.P, fused.gains, np.asarray(Ps), tol=fused_bound_tolerance(Ps))
-    # the fused P's own rounding, and the propagation's: two routes to a bound whose
-    # condition number is cond(r.P) agree to about cond(r.P) eps relative to its norm
-    tol = max(1e-7, fused_bound_tolerance(Ps), 64 * np.finfo(float).eps * np.linalg.cond(r.P))
-    np.testing.assert_allclose(r.P, propagate_bound(fused.P, F, Q, H, R, horizon),
-                               rtol=tol, atol=tol * np.abs(r.P).max())
+    assert_propagation_agrees(r.P, fused.P, Ps, F, Q, H, R, horizon)
 
 
 @settings(max_examples=15)
@@ -890,3 +905,16 @@ def test_steady_state_covariance_is_finite_and_positive_definite_or_raises():
     np.linalg.cholesky(P)
     with pytest.raises(ValueError):
         steady_state_covariance(F_UNSTABLE, np.eye(2), None, None)
+
+
+def test_bound_of_an_estimate_ignored_along_a_measured_direction_is_exact():
+    """The hypothesis landing of issue 10: omega = (0, 1) ignores P_1 and leaves a prior of
+    norm 3e9 along a direction the next measurement fixes. The solver's bound is exact
+    (60-digit reference 20.40308530206274); the Joseph route loses about 1e-7."""
+    Ps = [63.2455532 * np.eye(2), np.diag([3.16227766e09, 3.16227766e01])]
+    F = np.array([[-1.73141426, -0.46411801], [4.41950682, 1.75095628]])
+    H = np.array([[-1.64139729, -0.00520326]])
+    r = horizon_weights(Ps, F, np.eye(2), H, np.eye(1), 1, "trace")
+    assert r.P[1, 1] == pytest.approx(20.40308530206274, rel=1e-14)
+    fused = covariance_intersection([np.zeros(2)] * 2, Ps, omega=r.omega)
+    assert_propagation_agrees(r.P, fused.P, Ps, F, np.eye(2), H, np.eye(1), 1)

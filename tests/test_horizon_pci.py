@@ -19,6 +19,7 @@ from test_horizon import (
     Q_DYN,
     R_A,
     R_B,
+    assert_propagation_agrees,
     criterion_value,
     dynamic_filter,
     fused_bound_tolerance,
@@ -554,9 +555,4 @@ def test_horizon_delta_of_ill_conditioned_estimates_is_on_the_simplex_and_conser
     np.linalg.cholesky(r.P)
     fused = partial_ci(np.zeros((count, n)), Ps, rho, delta=delta)
     assert_bound_holds(fused.P, fused.gains, Ps, rho=rho, tol=fused_bound_tolerance(Ps))
-    # the fused P's own rounding, and the propagation's: two routes to a bound whose
-    # condition number is cond(r.P) agree to about cond(r.P) eps relative to its norm
-    # (P = 1e12 I against R = 1 gives cond(r.P) ~ 1e11 from well-conditioned inputs)
-    tol = max(1e-7, fused_bound_tolerance(Ps), 64 * np.finfo(float).eps * np.linalg.cond(r.P))
-    np.testing.assert_allclose(r.P, propagate_bound(fused.P, F, Q, H, R, horizon),
-                               rtol=tol, atol=tol * np.abs(r.P).max())
+    assert_propagation_agrees(r.P, fused.P, Ps, F, Q, H, R, horizon)
