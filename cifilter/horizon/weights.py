@@ -52,7 +52,7 @@ class HorizonOmega:
     >>> from cifilter.horizon import optimal_omega
     >>> r = optimal_omega(np.diag([1.0, 2.0]), np.diag([2.0, 1.0]), np.eye(2), 0.0,
     ...                   np.eye(2), np.diag([1.0, 2.0]), horizon=1)
-    >>> round(float(r.omega), 12), float(r.info["omega_recursive"])
+    >>> round(float(r.omega), 12), round(float(r.info["omega_recursive"]), 12)
     (0.0, 0.5)
     """
 
