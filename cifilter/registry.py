@@ -392,7 +392,8 @@ def fuse_estimates(estimates, method, options, *, horizon=None, model=None, labe
             f"method {record.name!r} does not support horizon=; the methods that choose "
             f"their weights for a horizon are {', '.join(map(repr, supporting))}"
         )
-    _check_options(record, options)
+    if horizon is None:  # with horizon= the rule's hook checks the options it takes
+        _check_options(record, options)
     names = ("estimates' x", "estimates' P") if labels is None else ("x", "P")
     stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs], names=names,
                            labels=labels)

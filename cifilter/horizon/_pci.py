@@ -1,59 +1,38 @@
-"""Horizon-optimal ``delta`` of partial-correlation CI, for :mod:`cifilter.horizon`.
+"""The partial-CI ``delta`` for the bound at a horizon (Wu, Cai & Fu 2018, eq. 24).
 
-With correlation coefficient bounds ``rho``, Lemma 7 of Wu, Cai & Fu (2018) bounds the joint
-error covariance of the N estimates, in the positive semidefinite order, by
-``blockdiag(P_i / w_i(delta))`` for every ``delta`` on the simplex, with eq. (24),
-``w_i(delta) = delta_i / (rho_i + (1 - rho_i) delta_i)``. The best linear estimator for that
-bound and the filter's future measurements is the Kalman filter started from the fused bound
-``(sum_i w_i P_i^-1)^-1`` (eq. 33), so by the superposition formula of :mod:`cifilter.horizon`
-
-    P_kappa(delta) = P_c + exp(2 s) Psi S(delta)^-1 Psi^T,
-    S(delta) = sum_i w_i(delta) I_i + Gamma,   I_i = P_i^-1.
-
-The weights do not sum to one (unless ``rho = 1``), so ``S`` is not a convex combination of
-``I_i + Gamma``; it is used in this information form. Every criterion is convex in ``delta``
-(``docs/methods/horizon.rst``): ``w_i`` is concave, so ``S`` is matrix concave, and the
-criteria are convex non-increasing functions of ``S``.
-
-Derivatives, with ``X = S^-1``, are taken in ``w`` and chained through
-``w_i' = rho_i / b_i^2`` and ``w_i'' = -2 rho_i (1 - rho_i) / b_i^3``
-(``b_i = rho_i + (1 - rho_i) delta_i``): ``g_i = (df/dw_i) w_i'`` and
-``H_ij = (d2f/dw_i dw_j) w_i' w_j' + [i = j] (df/dw_i) w_i''``.
-
-* ``f = tr(V X)`` (``V = Psi^T W Psi`` normalised; the constant ``tr(W P_c)`` and the factor
-  ``exp(2 s)`` do not move the minimiser): with ``M = X V X``, ``df/dw_i = -tr(M I_i)`` and
-  ``d2f/dw_i dw_j = 2 tr(M I_i X I_j)``.
-* ``f = log det Z``, ``Z = P_c + exp(2 s) Psi X Psi^T``: with ``C = exp(2 s) Psi^T Z^-1 Psi``
-  and ``M_i = C X I_i X``, ``df/dw_i = -tr(M_i)`` and
-  ``d2f/dw_i dw_j = 2 tr(M_i I_j X) - tr(M_i M_j)``. The ``delta``-dependent part of
-  ``log det Z`` is of the order ``exp(2 s)``, which decays geometrically with the horizon and
-  would be lost to rounding against ``log det P_c``; the solver therefore minimises
-  ``(log det Z(delta) - log det Z(delta_0)) / exp(2 s)`` for the fixed reference
-  ``delta_0 = 1/N``, computed as ``sum_k log1p(e lam_k) / e`` from the eigenvalues ``lam_k`` of
-  ``L_0^-1 Psi (X - X_0) Psi^T L_0^-T`` (``Z(delta_0) = L_0 L_0^T``) with
-  ``X - X_0 = X (sum_i (w_0i - w_i) I_i) X_0``, which keeps its relative accuracy at every
-  horizon, and its gradient and Hessian divided by ``exp(2 s)`` alike. The constant
-  ``tr(Z_0^-1 Psi X_0 Psi^T)`` is added to it: the scale of its rounding errors, which the
-  solver's test "decrease below the rounding level of ``f``" needs to see (a difference
-  near zero would hide it, and the solver would run to its iteration limit at optima it
-  cannot certify by a decrease).
+With ``w_i(delta) = delta_i / (rho_i + (1 - rho_i) delta_i)`` the bound at the horizon is
+``P_c + exp(2 s) Psi S(delta)^-1 Psi^T`` with ``S(delta) = sum_i w_i P_i^-1 + Gamma``, convex
+in ``delta``; the active-set Newton method on the simplex minimises it with exact gradients
+and Hessians chained through eq. (24). At horizon 0 the trace criterion is the ``"pci"``
+rule's problem (35) and its solver, :func:`cifilter._partial_correlation.newton_delta`, is
+used. Derivations, the ``log det`` reformulation and the floor of tiny bounds:
+``docs/methods/horizon.rst``, "Partial-correlation CI".
 """
 
 import numpy as np
 
-from ._linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
-from ._optimize import minimize_convex_simplex
-from ._partial_correlation import NEWTON_RHO_FLOOR as _NEWTON_RHO_FLOOR
-from ._partial_correlation import partial_weights as _partial_weights
-from ._partial_correlation import weight_derivatives as _weight_derivatives
-from ._riccati import propagated_bound
+from .._information import squared_norms
+from .._linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
+from .._optimize import minimize_convex_simplex
+from .._partial_correlation import (
+    NEWTON_RHO_FLOOR,
+    bound_and_spread,
+    newton_delta,
+    partial_weights,
+    relative_gap,
+    weight_derivatives,
+)
+from ._model import propagated_bound
 
-__all__ = ["information_bound", "partial_horizon_delta"]
+__all__ = ["delta_problem", "information_bound", "pci_horizon_delta"]
+
+# The "pci" rule's defaults (cifilter.partial_ci), used for its problem at horizon 0.
+RULE_TOL, RULE_MAX_ITER = 1e-10, 100
 
 
 def _fused_inverse(delta, rho, informations, Gamma):
     """``w(delta)`` (eq. 24) and ``X = (sum_i w_i I_i + Gamma)^-1``."""
-    w = _partial_weights(delta, rho)
+    w = partial_weights(delta, rho)
     S = symmetrize(np.einsum("...k,...kij->...ij", w, informations) + Gamma)
     return w, cho_inverse(cholesky(S, "fused information sum_i w_i P_i^-1 + Gamma"))
 
@@ -66,7 +45,7 @@ def information_bound(informations, terms, weights):
 
 def _chain(g_w, H_w, delta, rho):
     """Gradient and Hessian in ``delta`` from those in ``w`` (chain rule through eq. 24)."""
-    first, second = _weight_derivatives(delta, rho)
+    first, second = weight_derivatives(delta, rho)
     g = g_w * first
     H = H_w * first[..., :, None] * first[..., None, :]
     H = H + np.einsum("...i,ij->...ij", g_w * second, np.eye(delta.shape[-1]))
@@ -156,11 +135,36 @@ def _problem(informations, terms, rho, weight):
     return _trace_problem(informations, terms.Gamma, rho, V) + (scale * size,)
 
 
-def partial_horizon_delta(informations, terms, rho, weight=None):
+def delta_problem(informations, terms, rho, weight):
+    """``(objective, derivatives, factor)`` of the solver, for tests of its derivatives.
+
+    ``objective(delta)`` is the criterion up to a constant and the positive ``factor``;
+    ``derivatives(delta)`` its gradient (..., N) and Hessian (..., N, N) in ``delta``.
+    ``weight`` is ``W`` of ``tr(W P_kappa)`` or None for ``log det``.
+    """
+    objective, parts, factor = _problem(informations, terms, rho, weight)
+
+    def derivatives(delta):
+        return _chain(*parts(delta)[1:], delta, rho)
+
+    return objective, derivatives, factor
+
+
+def _is_rule_problem(terms, weight):
+    """Horizon 0 with the trace: ``P_c = 0``, ``Gamma = 0``, ``Psi = I`` and ``W = I``."""
+    n = terms.Psi.shape[-1]
+    return (weight is not None and not terms.P_c.any() and not terms.Gamma.any()
+            and np.all(terms.Psi == np.eye(n)) and not terms.log_scale.any()
+            and np.all(weight == np.eye(n)))
+
+
+def pci_horizon_delta(L_inv, informations, terms, rho, weight=None):
     """The ``delta`` minimising a criterion of ``P_kappa(delta)``, batched.
 
     Parameters
     ----------
+    L_inv : ndarray, shape (..., N, n, n)
+        Inverse Cholesky factors of the covariances.
     informations : ndarray, shape (..., N, n, n)
         ``I_i = P_i^-1``.
     terms : Terms
@@ -173,24 +177,20 @@ def partial_horizon_delta(informations, terms, rho, weight=None):
 
     Returns
     -------
-    delta, iterations, converged : ndarray
-        Minimisers on the simplex (exact zeros on faces), iterations and convergence flags
-        of :func:`cifilter._optimize.minimize_convex_simplex`.
-    gap : ndarray
-        A certified bound on the criterion's excess over its minimum, relative to the
-        criterion (``tr(W P_kappa)`` or ``det P_kappa``), from convexity with the true
-        ``rho``: ``f(delta) - min f <= sum_i g_i delta_i - min_i g_i``.
-
-    Notes
-    -----
-    Positive bounds below ``_NEWTON_RHO_FLOOR`` (1e-8) are raised to it for the Newton
-    iterations, as in partial CI's Newton solver: near ``delta_i = 0`` the curvature in
-    ``delta_i`` grows like ``rho_i^-2`` and the solver's normalised KKT system would drop
-    every other direction. ``gap`` is computed with the true bounds, so it states how far
-    such a ``delta`` can be from the optimum of the true problem.
+    delta, iterations, converged, gap, solver
+        Minimisers on the simplex (exact zeros on faces), iterations, convergence flags,
+        a certified bound on the criterion's excess over its minimum relative to the
+        criterion (``tr(W P_kappa)`` or ``det P_kappa``, from convexity with the true
+        ``rho``) and the solver's name.
     """
+    if _is_rule_problem(terms, weight):
+        delta, iterations = newton_delta(L_inv, rho, RULE_TOL, RULE_MAX_ITER)
+        _, factors, spread = bound_and_spread(delta, rho, L_inv)
+        with np.errstate(over="ignore", invalid="ignore"):
+            gap = relative_gap(delta, rho, squared_norms(factors.R_inv), spread)
+        return delta, iterations, gap <= RULE_TOL, gap, "newton"
     positive = rho > 0.0
-    floored = np.where(positive, np.maximum(rho, _NEWTON_RHO_FLOOR), 0.0)
+    floored = np.where(positive, np.maximum(rho, NEWTON_RHO_FLOOR), 0.0)
     objective, parts, _ = _problem(informations, terms, floored, weight)
 
     def evaluate(delta):
@@ -199,19 +199,14 @@ def partial_horizon_delta(informations, terms, rho, weight=None):
 
     delta, iterations, converged = minimize_convex_simplex(
         evaluate, objective, informations.shape[-3], informations.shape[:-3])
-    # The certificate, with the true bounds: g_i = g_w_i w_i', written so that a tiny rho_i
-    # with delta_i = 0 gives a huge (not NaN) g_i and g_i delta_i = 0.
+    # The certificate, with the true bounds: df/dw_i = g_w_i <= 0 (the "spread" of
+    # relative_gap is -g_w_i), relative to the criterion.
     _, parts, factor = _problem(informations, terms, rho, weight)
     f, g_w, _ = parts(delta)
-    base = np.where(positive, rho + (1.0 - rho) * delta, 1.0)
-    with np.errstate(over="ignore", divide="ignore"):
-        ratio = np.where(positive, rho / base, 0.0)
-        g = g_w * ratio / base
-        along = (g_w * ratio * _partial_weights(delta, rho)).sum(axis=-1)  # sum g_i delta_i
-        excess = factor * np.maximum(along - g.min(axis=-1), 0.0)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
         if weight is None:
-            gap = np.expm1(excess)  # log det -> det
+            gap = np.expm1(factor * relative_gap(delta, rho, 1.0, -g_w))  # log det -> det
         else:
             total = np.einsum("...ij,...ji->...", weight, terms.P_c) + factor * f
-            gap = excess / total
-    return delta, iterations, converged, gap
+            gap = relative_gap(delta, rho, total / factor, -g_w)
+    return delta, iterations, converged, gap, "simplex"

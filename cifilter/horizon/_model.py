@@ -1,8 +1,10 @@
-"""The local filter's linear model and its Riccati recursion, for :mod:`cifilter.horizon`.
+"""The local filter's model, its scaled Riccati recursion and the horizon terms.
 
 Validation of ``F, Q, H, R, G`` (constant or one measurement model per step), the
-predict/update steps of eqs. (16), (32)-(33) of Ajgl et al. (2014), and the terms of the
-superposition formula ``P_kappa(P_0) = P_c + Psi (P_0^-1 + Gamma)^-1 Psi^T``.
+predict/update steps of eqs. (16), (32)-(33) of Ajgl et al. (2014), the terms of the
+superposition formula ``P_kappa(P_0) = P_c + Psi (P_0^-1 + Gamma)^-1 Psi^T`` on a
+power-of-two scale, and the checked unscaling of bounds and criteria. Derivation and
+scaling scheme: ``docs/methods/horizon.rst``.
 """
 
 import numbers
@@ -10,12 +12,30 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from ._linalg import cho_solve, cholesky, solve_lower, symmetrize
-from ._validation import as_float_array, as_matrix, check_covariances, check_psd
+from .._criteria import criterion_value
+from .._linalg import cho_solve, cholesky, solve_lower, symmetrize
+from .._validation import as_float_array, as_matrix, check_covariances, check_psd
 
-__all__ = ["Model", "Terms", "as_matrix", "as_model", "broadcast_terms", "check_steps_available",
-           "horizon_terms", "overflow_error", "predict", "propagated_bound", "rescale",
-           "riccati", "riccati_scaled", "unscale", "update"]
+__all__ = [
+    "Model",
+    "Terms",
+    "as_model",
+    "at_horizon",
+    "broadcast_terms",
+    "check_steps_available",
+    "checked_bound",
+    "criterion_at",
+    "horizon_terms",
+    "model_parts",
+    "overflow_error",
+    "predict",
+    "propagated_bound",
+    "rescale",
+    "riccati_scaled",
+    "stack_terms",
+    "unscale",
+    "update",
+]
 
 
 # --------------------------------------------------------------------------- the model
@@ -210,19 +230,6 @@ def riccati_scaled(P, model, horizon):
     return bounds
 
 
-def riccati(P, model, horizon):
-    """Bounds after 0, 1, ..., horizon steps (list); ValueError if one overflows float64."""
-    return [unscale(P_hat, e, "the propagated bound", _after(step, horizon))
-            for step, (P_hat, e) in enumerate(riccati_scaled(P, model, horizon))]
-
-
-def _after(step, horizon):
-    def where(index):
-        at = f" (batch index {tuple(int(i) for i in index)})" if index else ""
-        return f"after step {step} of the horizon {horizon}{at}"
-    return where
-
-
 class Terms(NamedTuple):
     """The horizon terms of (*), on a power-of-two scale:
 
@@ -326,3 +333,88 @@ def broadcast_terms(terms, batch):
                   np.broadcast_to(terms.log_scale, batch),
                   np.broadcast_to(terms.Gamma, batch + (n, n)),
                   np.broadcast_to(terms.exponent, batch))
+
+
+def stack_terms(terms_list):
+    """The terms of several horizons stacked along a new last batch axis."""
+    batch = np.broadcast_shapes(*(t.log_scale.shape for t in terms_list),
+                                *(t.P_c.shape[:-2] for t in terms_list))
+    terms_list = [broadcast_terms(t, batch) for t in terms_list]
+    return Terms(*(np.stack(parts, axis=len(batch)) for parts in zip(*terms_list)))
+
+
+def model_parts(model):
+    """F, Q, H, R, G of ``model``: a mapping or an object with those attributes."""
+    fields = ("F", "Q", "H", "R", "G")
+    if isinstance(model, dict):
+        unknown = sorted(set(model) - set(fields))
+        if unknown:
+            raise ValueError(f"model has unknown entries {unknown}; it takes "
+                             f"{', '.join(fields)}")
+        get = model.get
+    else:
+        def get(name):
+            return getattr(model, name, None)
+    if get("F") is None or get("Q") is None:
+        raise ValueError("model must give at least F and Q (and H, R for measurements)")
+    return tuple(get(name) for name in fields)
+
+
+# --------------------------------------------------------------------------- results
+def at_horizon(horizons, weights=None):
+    """``where(index)`` for error messages; the last batch axis runs over ``horizons`` if an
+    array is given, and the weights found there (..., N) are quoted (they are well defined)."""
+
+    def where(index):
+        index = tuple(int(i) for i in index)
+        if np.ndim(horizons):
+            text, batch_index = f"at horizon {horizons[index[-1]]}", index[:-1]
+        else:
+            text, batch_index = f"at horizon {horizons}", index
+        if batch_index:
+            text += f" (batch index {batch_index})"
+        if weights is not None:
+            found = np.round(np.asarray(weights)[index], 6).tolist()
+            text += f", where the optimal weights {found} are still well defined,"
+        return text
+
+    return where
+
+
+def criterion_at(P_hat, exponent, kind, W, where):
+    """The criterion of ``2^e P_hat`` without forming it (ValueError if not representable).
+
+    ``det`` is ``exp(log det)`` from a Cholesky factor of ``P_hat`` plus ``n e ln 2``.
+    """
+    exponent = np.broadcast_to(exponent, P_hat.shape[:-2])
+    if kind == "det":
+        n = P_hat.shape[-1]
+        L = cholesky(P_hat, "propagated bound")
+        log_det = (2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
+                   + n * _LN2 * exponent)
+        bad = (log_det > np.log(np.finfo(float).max)) | (log_det < np.log(np.finfo(float).tiny))
+        if bad.any():
+            index = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
+            raise ValueError(
+                f"det of the propagated bound {where(index)} is not representable in float64: "
+                f"log det = {float(log_det[index]):.6g}; ask for a shorter horizon")
+        return np.exp(log_det)
+    value = criterion_value(P_hat, kind, W)
+    return unscale(value[..., None, None], exponent, "the criterion of the propagated bound",
+                   where)[..., 0, 0]
+
+
+def checked_bound(P_hat, exponent, where):
+    """``2^e P_hat``: finite (ValueError otherwise) and positive definite (else the error of
+    :func:`cifilter._linalg.cholesky` for the first failing item, naming the horizon).
+
+    The condition number is not limited: an unstable model's bound legitimately exceeds
+    the conditioning contract of the inputs while it is still positive definite.
+    """
+    P = unscale(P_hat, exponent, "the propagated bound", where)
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        for index in np.ndindex(P.shape[:-2]):  # failure path: the first failing item
+            cholesky(P[index], f"the propagated bound {where(index)}")
+    return P
