@@ -19,7 +19,6 @@ A tree other than the installed one is timed with ``--tree PATH`` (it is put fir
 """
 
 import argparse
-import statistics
 import sys
 import timeit
 
