@@ -173,13 +173,15 @@ def alternating_delta(L_inv, rho, tol, max_iter, start=None):
 NEWTON_RHO_FLOOR = 1e-8
 
 
-def _pair_newton(evaluate, L_inv, size, max_iter):
+def _pair_newton(evaluate, objective, size, max_iter):
     """Two estimates: Newton on ``delta = (t, 1 - t)``, the same safeguarded interval
     method as two-estimate CI (``f'(t) = g_1 - g_2``, ``f''(t) = H_11 - 2 H_12 + H_22``).
 
-    ``L_inv`` is (size, 2, n, n); one problem runs the scalar form of the iteration.
+    One problem runs the scalar form of the iteration.
     """
-    scale = squared_norms(L_inv).sum(axis=-1)  # a magnitude of Tr P (flatness test only)
+    everything = np.arange(size)
+    # the magnitude of Tr P for the flatness test: its value in the middle of the segment
+    scale = objective(np.full((size, 2), 0.5), everything)
 
     def derivatives(t, index):
         _, g, H = evaluate(np.stack([t, 1.0 - t], axis=-1), index)
@@ -242,7 +244,7 @@ def newton_delta(L_inv, rho, tol, max_iter):
         return trace, -first * spread, symmetrize(H)
 
     if count == 2:
-        delta, steps = _pair_newton(evaluate, flat_L_inv, size, max_iter)
+        delta, steps = _pair_newton(evaluate, objective, size, max_iter)
     else:
         delta, steps, _ = minimize_convex_simplex(
             evaluate, objective, count, (size,), xtol=tol, max_iter=max_iter, gtol=tol,

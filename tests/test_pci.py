@@ -590,3 +590,16 @@ def test_many_random_instances_reach_the_general_solver_optimum(count):
             assert abs(np.trace(r.P) - reference) <= 1e-6 * reference
             if r.info["converged"]:
                 assert np.trace(r.P) <= reference * (1 + 1e-10)
+
+
+def test_two_estimates_at_a_small_scale_are_not_mistaken_for_a_flat_problem():
+    """Regression (found by hypothesis): the flatness test of the two-estimate Newton
+    iteration was scaled by Tr P_i^-1 instead of Tr P, so at covariances of 1e-8 every
+    problem looked flat and stopped at delta = (1/2, 1/2), unconverged."""
+    Ps = [1e-8 * np.eye(3), np.diag([1e-7, 1e-8, 1e-8])]
+    for rho in (1.0, 0.5):
+        r = partial_ci([np.zeros(3)] * 2, Ps, rho)
+        assert r.info["converged"] and r.info["gap"] <= 1e-10
+        assert abs(r.info["delta"][0] - 0.5) > 0.2  # not the middle of the segment
+    # rho = 1 is CI, and P_2 >= P_1: the second estimate is ignored exactly
+    np.testing.assert_array_equal(partial_ci([np.zeros(3)] * 2, Ps, 1.0).info["delta"], [1, 0])
