@@ -160,6 +160,10 @@ def cholesky(A, name="matrix"):
     write the message of a failure.
     """
     A = np.asarray(A, dtype=float)
+    if A.ndim == 2 and A.shape[0] == A.shape[1]:  # one matrix: LAPACK directly
+        L = cholesky_single(A)
+        if L is not None and np.isfinite(L).all():
+            return L
     try:
         L = np.linalg.cholesky(A)
         if np.isfinite(L).all():  # LAPACK passes NaN through instead of failing

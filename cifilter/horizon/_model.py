@@ -182,13 +182,14 @@ def _check_finite(step, horizon, **arrays):
 # --------------------------------------------------------------------------- Riccati steps
 def predict(P, model, e=None):
     """Eq. (16): F P F^T + G Q G^T (with P = 2^e P_hat: for P_hat, noise scaled by 2^-e)."""
-    noise = model.noise if e is None else np.ldexp(model.noise, -e[..., None, None])
+    noise = model.noise if e is None or not e.any() else np.ldexp(model.noise,
+                                                                   -e[..., None, None])
     return symmetrize(model.F @ P @ np.swapaxes(model.F, -1, -2) + noise)
 
 
 def _scaled(measurement, e):
     H, R = measurement
-    return H, np.ldexp(R, -e[..., None, None])
+    return (H, R) if not e.any() else (H, np.ldexp(R, -e[..., None, None]))
 
 
 def update(M, measurement):
