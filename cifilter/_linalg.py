@@ -236,6 +236,10 @@ def cho_solve(L, B):
     """
     vector = B.ndim == L.ndim - 1
     B2 = B[..., None] if vector else B
+    if L.ndim == 2 and B2.ndim == 2:  # one system: LAPACK's potrs directly
+        X, info = lapack.dpotrs(L, B2, lower=1)
+        if info == 0:
+            return X[..., 0] if vector else X
     Y = solve_lower(L, B2)
     X = np.linalg.solve(np.swapaxes(L, -1, -2), Y)
     return X[..., 0] if vector else X
