@@ -47,6 +47,7 @@ __all__ = [
     "squared_norms",
     "trace_curvature",
     "weighted_fusion",
+    "weighted_information",
 ]
 
 _EPS = np.finfo(float).eps
@@ -151,6 +152,12 @@ class InformationFactors(NamedTuple):
     R_inv: np.ndarray  # (..., n, n), its inverse
     B: np.ndarray  # (..., N, n, n), B_i = P L_i^-T = R^-T C_i
     C: np.ndarray  # (..., N, n, n), C_i = R^-1 L_i^-T
+
+
+def weighted_information(weights, informations):
+    """``sum_i w_i I_i`` (..., n, n), symmetric, for weights (..., N) and information
+    matrices (..., N, n, n): the fused information of every scalar-weight rule."""
+    return symmetrize(np.einsum("...k,...kij->...ij", weights, informations))
 
 
 def information_factors(L_inv, weights, *, failures="raise"):

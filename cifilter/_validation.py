@@ -297,7 +297,7 @@ def as_mean_stack(xs, n, count, name="xs", *, labels=None):
     return x, style == "column"
 
 
-def _single_estimates(xs, Ps):
+def _usual_single_estimates(xs, Ps):
     """The common case of :func:`as_estimates` done cheaply, or None.
 
     Sequences of N float64 arrays: means (n,) or (n, 1), covariances (n, n), no batch
@@ -384,7 +384,7 @@ def as_estimates(xs, Ps, *, min_count=2, names=("xs", "Ps"), labels=None):
         batch shapes that do not broadcast.
     """
     if min_count <= 2:
-        fast = _single_estimates(xs, Ps)
+        fast = _usual_single_estimates(xs, Ps)
         if fast is not None:
             return fast
     x_name, P_name = names

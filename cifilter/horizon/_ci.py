@@ -13,6 +13,7 @@ import numpy as np
 
 from .._ci_weights import optimal_weights
 from .._criteria import certified_gap
+from .._information import weighted_information
 from .._linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
 from .._optimize import minimize_convex_interval, minimize_convex_simplex
 from .._validation import Estimates
@@ -23,7 +24,7 @@ __all__ = ["ci_fused_information", "ci_horizon_weights"]
 
 def ci_fused_information(S, weights):
     """``(sum_i w_i S_i)^-1``: the inverse fused information (..., n, n)."""
-    S_w = symmetrize(np.einsum("...k,...kij->...ij", weights, S))
+    S_w = weighted_information(weights, S)
     return cho_inverse(cholesky(S_w, "fused information"))
 
 

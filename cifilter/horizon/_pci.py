@@ -11,7 +11,7 @@ used. Derivations, the ``log det`` reformulation and the floor of tiny bounds:
 
 import numpy as np
 
-from .._information import squared_norms
+from .._information import squared_norms, weighted_information
 from .._linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
 from .._optimize import minimize_convex_scalar, minimize_convex_simplex
 from .._partial_correlation import (
@@ -33,13 +33,13 @@ RULE_TOL, RULE_MAX_ITER = 1e-10, 100
 def _fused_inverse(delta, rho, informations, Gamma):
     """``w(delta)`` (eq. 24) and ``X = (sum_i w_i I_i + Gamma)^-1``."""
     w = partial_weights(delta, rho)
-    S = symmetrize(np.einsum("...k,...kij->...ij", w, informations) + Gamma)
+    S = weighted_information(w, informations) + Gamma
     return w, cho_inverse(cholesky(S, "fused information sum_i w_i P_i^-1 + Gamma"))
 
 
 def information_bound(informations, terms, weights):
     """``P_c + exp(2 s) Psi (sum_i w_i I_i + Gamma)^-1 Psi^T`` for weights (..., N)."""
-    S = symmetrize(np.einsum("...k,...kij->...ij", weights, informations) + terms.Gamma)
+    S = weighted_information(weights, informations) + terms.Gamma
     return propagated_bound(terms, cho_inverse(cholesky(S, "fused information")))
 
 
@@ -92,7 +92,7 @@ def _det_problem(informations, terms, rho):
 
     def value(delta):
         w, X = _fused_inverse(delta, rho, informations, terms.Gamma)
-        change = X @ np.einsum("...k,...kij->...ij", w_0 - w, informations) @ X_0  # X - X_0
+        change = X @ weighted_information(w_0 - w, informations) @ X_0  # X - X_0
         D = solve_lower(L_0, Psi @ symmetrize(change) @ Psi_T)
         D = solve_lower(L_0, np.swapaxes(D, -1, -2))  # L_0^-1 Psi (X - X_0) Psi^T L_0^-T
         lam = np.linalg.eigvalsh(symmetrize(D))
