@@ -1,4 +1,4 @@
-"""Hypothesis strategies for covariances and admissible joint covariances.
+"""Hypothesis strategies for covariances, admissible joint covariances and linear models.
 
 ``joint_covariances`` builds every kind of cross-covariance the fusion rules must survive:
 independent, partially and fully correlated (rank-deficient correlation), by whitening
@@ -168,3 +168,33 @@ def means_of_their_scale(values, Pa, Pb):
     n = Pa.shape[0]
     return (np.array(values[:n]) * np.sqrt(np.diag(Pa)),
             np.array(values[5:5 + n]) * np.sqrt(np.diag(Pb)))
+
+
+# ----------------------------------------------------------------- models for cifilter.horizon
+@st.composite
+def systems(draw, n=2):
+    """(F, Q, H, R, PA, PB): a random linear model of dimension n and two covariances."""
+    g = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    F = g.standard_normal((n, n)) * draw(st.sampled_from([0.3, 1.0]))
+    Q = draw(spd_matrices(n, min_eigenvalue=0.01, max_eigenvalue=5.0))
+    H = g.standard_normal((draw(st.integers(1, n)), n))
+    R = np.eye(H.shape[0]) * draw(st.sampled_from([0.1, 1.0, 10.0]))
+    PA, PB = draw(spd_matrices(n)), draw(spd_matrices(n))
+    return F, Q, H, R, PA, PB
+
+
+@st.composite
+def models(draw, n, measured=None):
+    """(F, Q, H, R) with a spectral radius from 0.3 to 1.25 (stable and unstable)."""
+    g = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    A = g.standard_normal((n, n))
+    radius = draw(st.sampled_from([0.3, 0.9, 1.0, 1.05, 1.25]))
+    F = A * radius / np.abs(np.linalg.eigvals(A)).max()
+    Q = draw(ill_conditioned_spd(n, max_condition=1e6, scales=(1e-6, 1e2)))
+    if measured is None:
+        measured = draw(st.booleans())
+    if not measured:
+        return F, Q, None, None
+    H = g.standard_normal((draw(st.integers(1, n)), n))
+    R = draw(ill_conditioned_spd(H.shape[0], max_condition=1e6, scales=(1e-6, 1e2)))
+    return F, Q, H, R

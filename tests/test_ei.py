@@ -1,9 +1,9 @@
 """Ellipsoidal Intersection (:mod:`cifilter.ei`), through its public function and fuse.
 
-Paper values (Section III case 1), the literal eqs. (11)-(13) and (17), hand-derived
-cases, properties, the conditioning contract, the argument forms, batching, conventions
-and bad input. Helpers shared with ``test_pcei.py`` live here (``check_*`` functions take
-the rule under test).
+The literal eqs. (11)-(13) and (17), hand-derived cases, properties, the conditioning
+contract, the argument forms, batching, conventions and bad input. Helpers shared with
+``test_pcei.py`` live here (``check_*`` functions take the rule under test). The paper's
+Section III case 1 (``cifilter.reproduce.naveen``) is in ``test_reproduce.py``.
 """
 
 import numpy as np
@@ -15,7 +15,6 @@ from strategies import ill_conditioned_sets, means_of_their_scale, spd_matrices
 
 import cifilter
 from cifilter import IllConditionedError, ellipsoidal_intersection, fuse
-from cifilter.reproduce import naveen
 
 inv = np.linalg.inv
 
@@ -80,22 +79,6 @@ def test_ei_matches_the_printed_equations(mutual_mean, n):
                                           rel=1e-6)
 
 
-
-
-# ----------------------------------------------------------------- Section III
-def test_section_three_case_one_ei():
-    """EI with eps = 0.01 on C_c: independent parts (101, 101), (-101, 101), P about 1.
-
-    The text gives psi of about 100.5; eq. (17) gives (2 * 101)^2 / (2 * 101) = 202.
-    """
-    r = naveen.case_one(None)
-    np.testing.assert_allclose(r["independent_x"], [101.0, -101.0], rtol=1e-10)
-    np.testing.assert_allclose(r["independent_P"], [101.0, 101.0], rtol=1e-10)
-    assert r["common_P"] == pytest.approx(1.01)
-    assert r["P"] == pytest.approx(1.0 / (2.0 - 1.0 / 1.01), rel=1e-12)  # 0.990
-    assert r["psi"] == pytest.approx(202.0, rel=1e-9)  # the paper: "about 100.5"
-
-
 # ----------------------------------------------------------------- EI: hand-derived cases
 def test_ei_takes_the_better_input_per_eigen_direction():
     Pa, Pb = np.diag([1.0, 4.0]), np.diag([4.0, 1.0])
@@ -155,7 +138,6 @@ def test_near_equal_covariances_give_finite_continuous_results(mutual_mean, rela
     exact = ellipsoidal_intersection(xa, P, xb, Pb, eps=0.0, mutual_mean=mutual_mean)
     if relative > 1e-6:  # far outside it: the regulariser is negligible
         np.testing.assert_allclose(r.x, exact.x, atol=1e-3)
-
 
 
 def check_near_equal_covariances_are_finite(fn, P, Pb, xa, xb, mutual_mean):
@@ -344,7 +326,6 @@ def check_random_pairs_at_condition_1e9(fn, mutual_mean):
     xa, xb = rng.standard_normal((200, 4)), rng.standard_normal((200, 4))
     r = fn(xa, Pa, xb, Pb, mutual_mean=mutual_mean)
     assert_valid_fusion(r, Pa, Pb)
-
 
 
 def reference_ei(xa, Pa, xb, Pb, mutual_mean):

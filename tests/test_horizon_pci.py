@@ -7,11 +7,7 @@ import copy
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from scipy.optimize import minimize
-from strategies import assert_psd, fused_error_covariance, ill_conditioned_sets, sets_with_joint
-from test_horizon import (
+from helpers import (
     F_DYN,
     F_UNSTABLE,
     H_A,
@@ -25,8 +21,17 @@ from test_horizon import (
     fused_bound_tolerance,
     horizon_call_or_ill_conditioned,
     local_bounds_at_zero,
-    models,
     random_system,
+)
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.optimize import minimize
+from strategies import (
+    assert_psd,
+    fused_error_covariance,
+    ill_conditioned_sets,
+    models,
+    sets_with_joint,
 )
 from worst_case import assert_bound_holds
 
