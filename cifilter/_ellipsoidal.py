@@ -302,6 +302,17 @@ def spd_inverse_stack(M):
     return cho_inverse(L)
 
 
+def tie_shift(S):
+    """``tau`` (..., 1, 1) added to ``S = A + B`` (whitened, of order one) before the solve of
+    the mutual mean, eq. (13): ``8 n eps max(1, max|S|)``, a rounding-level change where
+    ``S`` is regular. Where ``S`` vanishes (equally informative inputs whose regulariser is
+    below rounding, such as ``eps I`` of covariances of order 1e14) the solve then gives the
+    limit of any symmetric regulariser, weights 1/2, instead of 0/0."""
+    n = S.shape[-1]
+    size = np.maximum(np.abs(S).max(axis=(-2, -1)), 1.0)
+    return (8.0 * n * np.finfo(float).eps * size)[..., None, None]
+
+
 def mutual_mean_weights(A, B, mutual_mean):
     """``(W_a, W_b)`` with ``m = (W_a + W_b)^-1 (W_a a + W_b b)``.
 
@@ -327,7 +338,8 @@ def decompose(A, B, J, a, b, lam, mutual_mean):
     S = A + B
     W_a, W_b = mutual_mean_weights(A, B, mutual_mean)
     rhs = np.einsum("...ij,...j->...i", W_a, a) + np.einsum("...ij,...j->...i", W_b, b)
-    m = solve_spd(S, rhs)
+    tau = tie_shift(S)
+    m = solve_spd(S + tau * np.eye(S.shape[-1]), rhs + tau[..., 0] * 0.5 * (a + b))
     Jm = np.einsum("...ij,...j->...i", J, m)
     eta_a, eta_b = a - Jm, lam * b - Jm
     s = eta_a + eta_b
@@ -459,7 +471,8 @@ def fuse_full(w, J, A, B, mutual_mean, R_a=None, information=None, C_root=None):
     eye = np.eye(n)
     if R_a is None:
         W_a, _ = mutual_mean_weights(A, B, mutual_mean)
-        R_a = solve_spd(A + B, W_a)
+        tau = tie_shift(A + B)
+        R_a = solve_spd(A + B + tau * eye, W_a + 0.5 * tau * eye)
     R_b = eye - R_a
     M = symmetrize(eye + w.lam[..., None] * eye - J if information is None else information)
     P_root = inverse_root(M, "the fused information")

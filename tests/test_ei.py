@@ -366,16 +366,21 @@ def check_argument_forms(fn, **options):
     forms = [fn([xa, xb], [Pa, Pb], **options), fn((xa, xb), (Pa, Pb), **options),
              fn(np.stack([xa, xb]), np.stack([Pa, Pb]), **options),
              fuse([(xa, Pa), (xb, Pb)], method=pairwise.method, **options)]
+    # (a single matrix is factored by LAPACK directly, a stack through numpy's batched
+    # LAPACK: the forms agree to rounding)
+    def same(a, b):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15)
+
     for r in forms:
         assert r.method == pairwise.method and r.weights is None
-        np.testing.assert_array_equal(r.x, pairwise.x)
-        np.testing.assert_array_equal(r.P, pairwise.P)
-        np.testing.assert_array_equal(r.gains, pairwise.gains)
-        np.testing.assert_array_equal(r.info["common_P"], pairwise.info["common_P"])
+        same(r.x, pairwise.x)
+        same(r.P, pairwise.P)
+        same(r.gains, pairwise.gains)
+        same(r.info["common_P"], pairwise.info["common_P"])
     # column vectors come back as columns
     column = fn([xa[:, None], xb[:, None]], [Pa, Pb], **options)
     assert column.x.shape == (3, 1)
-    np.testing.assert_array_equal(column.x[:, 0], pairwise.x)
+    same(column.x[:, 0], pairwise.x)
     column = fn(np.stack([xa, xb])[..., None], np.stack([Pa, Pb]), **options)
     assert column.x.shape == (3, 1)
     # a batch (..., 2, n), with covariances broadcast against the means
@@ -552,3 +557,18 @@ BAD_INPUT = [
 def test_bad_input_is_named(args, kwargs, error, message):
     with pytest.raises(error, match=message):
         ellipsoidal_intersection(*args, **kwargs)
+
+
+@pytest.mark.parametrize("regularization", [("covariance", 0.01), ("information", 1e-8)])
+@pytest.mark.parametrize("mutual_mean", ["as-printed", "sijs-lazar"])
+def test_equal_inputs_at_large_scales_have_a_finite_mutual_mean(regularization, mutual_mean):
+    """Regression (found by hypothesis): two equal covariances of order 1e14 with the
+    covariance regulariser eps I (below rounding at that scale) made A + B = 0 and the
+    mutual mean of eq. (13) 0/0 (NaN x). The symmetric limit gives their average."""
+    regularizer, eps = regularization
+    P = np.diag([1e14, 1e12, 1e12])
+    xa, xb = np.array([1e6, 0.0, 2e6]), np.array([3e6, 1e6, 0.0])
+    r = ellipsoidal_intersection(xa, P, xb, P.copy(), mutual_mean=mutual_mean,
+                                 regularizer=regularizer, eps=eps)
+    assert np.isfinite(r.x).all() and np.isfinite(r.info["common_x"]).all()
+    np.testing.assert_allclose(r.x, 0.5 * (xa + xb), rtol=1e-9)
