@@ -515,8 +515,8 @@ def check_scalar(value, name, *, low=None, high=None, low_open=False, high_open=
     below = low is not None and (value <= low if low_open else value < low)
     above = high is not None and (value >= high if high_open else value > high)
     if below or above:
-        left = "(" if low_open else "["
-        right = ")" if high_open else "]"
+        left = "(" if low_open or low is None else "["  # an unbounded side is open
+        right = ")" if high_open or high is None else "]"
         lower = "-inf" if low is None else low
         upper = "inf" if high is None else high
         interval = f"{left}{lower}, {upper}{right}"
