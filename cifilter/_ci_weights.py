@@ -123,7 +123,7 @@ def _diagonalised_weights(est, kind, W, L1_inv):
     cond(P_1) cond(P_2), so for ill-conditioned pairs they are rounding noise: such
     problems are not ``trusted`` and the caller solves them from Cholesky factors.
     """
-    S = symmetrize(L1_inv @ est.P[..., 1, :, :] @ np.swapaxes(L1_inv, -1, -2))
+    S = symmetrize(L1_inv @ est.P[..., 1, :, :] @ L1_inv.swapaxes(-1, -2))
     lam, U = np.linalg.eigh(S)
     T = est.L[..., 0, :, :] @ U
     n, size = est.dim, int(np.prod(est.batch_shape, dtype=int))
@@ -182,7 +182,7 @@ def _fuse_diagonalised(est, L1_inv, d, weights):
     n = est.dim
     e = d.lam / (1.0 + omega[..., None] * (d.lam - 1.0))
     TE = d.T * e[..., None, :]
-    K1 = omega[..., None, None] * (TE @ (np.swapaxes(d.U, -1, -2) @ L1_inv))
+    K1 = omega[..., None, None] * (TE @ (d.U.swapaxes(-1, -2) @ L1_inv))
     # An ignored estimate gets a gain of exactly zero (its term is not in the bound)
     K1 = np.where((omega == 1.0)[..., None, None], np.eye(n), K1)
     K2 = np.eye(n) - K1
@@ -193,7 +193,7 @@ def _fuse_diagonalised(est, L1_inv, d, weights):
         w = w[..., None, None]
         with np.errstate(divide="ignore", invalid="ignore"):
             M = np.where(w > 0.0, M / np.sqrt(w), 0.0)
-        P += M @ np.swapaxes(M, -1, -2)
+        P += M @ M.swapaxes(-1, -2)
     x1, x2 = est.x[..., 0, :], est.x[..., 1, :]
     x = x2 + (K1 @ (x1 - x2)[..., None])[..., 0]
     return x, symmetrize(P), np.stack([K1, K2], axis=-3)
@@ -217,11 +217,11 @@ def _interval_weights(L_inv, kind, W, scale):
         factors = information_factors(L_inv[index], weights, failures="nan")
         g = criterion_gradient(factors, kind, None if W is None else W[index])
         B = factors.B
-        E = B[:, 0] @ np.swapaxes(B[:, 0], -1, -2) - B[:, 1] @ np.swapaxes(B[:, 1], -1, -2)
+        E = B[:, 0] @ B[:, 0].swapaxes(-1, -2) - B[:, 1] @ B[:, 1].swapaxes(-1, -2)
         R = factors.R
         ER = E @ R
         if kind == "det":
-            RER = np.swapaxes(R, -1, -2) @ ER
+            RER = R.swapaxes(-1, -2) @ ER
             curvature = squared_norms(RER)
         elif kind == "trace":
             curvature = 2.0 * squared_norms(ER)

@@ -214,7 +214,7 @@ def whiten(est, factor=True):
     S = P[..., 0, :, :] + P[..., 1, :, :]
     Ls = np.linalg.cholesky(S)  # positive definite: Pa and Pb passed their checks
     Ls_inv = lower_inverse(Ls)
-    D = symmetrize(Ls_inv @ (P[..., 0, :, :] - P[..., 1, :, :]) @ np.swapaxes(Ls_inv, -1, -2))
+    D = symmetrize(Ls_inv @ (P[..., 0, :, :] - P[..., 1, :, :]) @ Ls_inv.swapaxes(-1, -2))
     delta, W = np.linalg.eigh(D)  # c^2 - s^2 ascending
     W, delta = W[..., ::-1], delta[..., ::-1]  # set B (c^2 > s^2) first, then A
     G = Ls @ W
@@ -224,7 +224,7 @@ def whiten(est, factor=True):
     q_a, q_b = q[..., 0, :], q[..., 1, :]
     root = np.sqrt(q_a)
     T = G / root[..., None, :]
-    T_inv = root[..., :, None] * (np.swapaxes(W, -1, -2) @ Ls_inv)
+    T_inv = root[..., :, None] * (W.swapaxes(-1, -2) @ Ls_inv)
     a = np.einsum("...ij,...j->...i", T_inv, est.x[..., 0, :])
     b = np.einsum("...ij,...j->...i", T_inv, est.x[..., 1, :])
     if not factor:
@@ -281,7 +281,7 @@ def solve_spd(M, v):
     except np.linalg.LinAlgError:  # an exactly singular member: inf/nan there, not an error
         values, vectors = np.linalg.eigh(M)
         with np.errstate(divide="ignore", invalid="ignore"):
-            x = vectors @ ((np.swapaxes(vectors, -1, -2) @ rhs) / values[..., :, None])
+            x = vectors @ ((vectors.swapaxes(-1, -2) @ rhs) / values[..., :, None])
     return x[..., 0] if vector else x
 
 
@@ -298,7 +298,7 @@ def spd_inverse_stack(M):
     except np.linalg.LinAlgError:
         values, vectors = np.linalg.eigh(M)
         with np.errstate(divide="ignore", invalid="ignore"):
-            return symmetrize((vectors / values[..., None, :]) @ np.swapaxes(vectors, -1, -2))
+            return symmetrize((vectors / values[..., None, :]) @ vectors.swapaxes(-1, -2))
     return cho_inverse(L)
 
 
@@ -476,7 +476,7 @@ def fuse_full(w, J, A, B, mutual_mean, R_a=None, information=None, C_root=None):
     R_b = eye - R_a
     M = symmetrize(eye + w.lam[..., None] * eye - J if information is None else information)
     P_root = inverse_root(M, "the fused information")
-    K_a = P_root @ (np.swapaxes(P_root, -1, -2) @ (eye - J @ R_a))
+    K_a = P_root @ (P_root.swapaxes(-1, -2) @ (eye - J @ R_a))
     P = gram(w.T @ P_root)
     m = np.einsum("...ij,...j->...i", R_a, w.a) + np.einsum("...ij,...j->...i", R_b, w.b)
     Jm = np.einsum("...ij,...j->...i", J, m)
@@ -490,7 +490,7 @@ def _covariance_base(w, eps):
     n = w.d.shape[-1]
     eye = np.eye(n)
     C = symmetrize(np.maximum(w.d, 1.0)[..., None] * eye
-                   + eps * w.T_inv @ np.swapaxes(w.T_inv, -1, -2))
+                   + eps * w.T_inv @ w.T_inv.swapaxes(-1, -2))
     L = cholesky(C, "the common covariance")
     J = cho_inverse(L)
     A = symmetrize(J @ (C - eye))
@@ -511,7 +511,7 @@ def covariance_regularised_base(w, eps):
 
 def gram(F):
     """``F F^T``, exactly symmetric and positive semidefinite by construction."""
-    return symmetrize(F @ np.swapaxes(F, -1, -2))
+    return symmetrize(F @ F.swapaxes(-1, -2))
 
 
 def to_original(w, fused, x):
@@ -522,7 +522,7 @@ def to_original(w, fused, x):
     reproduce the mean and sum to the identity exactly.
     """
     T, T_inv = w.T, w.T_inv
-    T_inv_t = np.swapaxes(T_inv, -1, -2)
+    T_inv_t = T_inv.swapaxes(-1, -2)
     P, common_P = fused.P, fused.common_P
     if fused.diagonal:  # column and row scalings instead of products
         K_a = (T * fused.K_a[..., None, :]) @ T_inv
@@ -672,8 +672,8 @@ def _ei_information_one(est, eps, mutual_mean):
     roots = np.empty((2, n, 1))
     roots[0, :, 0], roots[1, :, 0] = alpha, beta
     roots = np.sqrt(roots) * T_inv  # (2, n, n)
-    information = np.swapaxes(roots, -1, -2) @ roots
-    information += np.swapaxes(information, -1, -2)
+    information = roots.swapaxes(-1, -2) @ roots
+    information += information.swapaxes(-1, -2)
     information *= 0.5
     x = K_a @ est.x[0] + gains[1] @ est.x[1]
     tie = np.abs(np.log(d)) <= eps

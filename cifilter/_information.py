@@ -71,7 +71,7 @@ def lower_inverse_stack(L):
 def information_matrices(L):
     """``P_i^-1 = L_i^-T L_i^-1`` for Cholesky factors ``L`` of shape (..., N, n, n)."""
     L_inv = lower_inverse_stack(L)
-    return np.swapaxes(L_inv, -1, -2) @ L_inv
+    return L_inv.swapaxes(-1, -2) @ L_inv
 
 
 class WeightedFusion(NamedTuple):
@@ -191,13 +191,13 @@ def information_factors(L_inv, weights, *, failures="raise"):
     J = None
     for k in range(count):
         Lk = L_inv[..., k, :, :]
-        term = weights[..., k, None, None] * (np.swapaxes(Lk, -1, -2) @ Lk)
+        term = weights[..., k, None, None] * (Lk.swapaxes(-1, -2) @ Lk)
         J = term if J is None else J + term
     # (potrf reads one triangle only: J need not be symmetrised)
     R = checked_cholesky(J, "the fused information matrix", failures=failures)
     R_inv = lower_inverse_stack(R)
-    C = R_inv[..., None, :, :] @ np.swapaxes(L_inv, -1, -2)
-    B = np.swapaxes(R_inv, -1, -2)[..., None, :, :] @ C
+    C = R_inv[..., None, :, :] @ L_inv.swapaxes(-1, -2)
+    B = R_inv.swapaxes(-1, -2)[..., None, :, :] @ C
     return InformationFactors(R, R_inv, B, C)
 
 
@@ -266,7 +266,7 @@ def weighted_fusion(x, L, weights, L_inv=None, factors=None):
         w = weights[..., k, None, None]
         with np.errstate(divide="ignore", invalid="ignore"):
             M = np.where(w > 0.0, (gains[..., k, :, :] @ L[..., k, :, :]) / np.sqrt(w), 0.0)
-        P += M @ np.swapaxes(M, -1, -2)
+        P += M @ M.swapaxes(-1, -2)
     P = symmetrize(P)
     return WeightedFusion(x_fused, P, gains, factors)
 

@@ -88,7 +88,7 @@ def ill_conditioned(name, cond, what="is too ill-conditioned to fuse reliably"):
 def symmetrize(A):
     """Return ``(A + A^T) / 2`` over the last two axes (a new array)."""
     A = np.asarray(A)
-    return 0.5 * (A + np.swapaxes(A, -1, -2))
+    return 0.5 * (A + A.swapaxes(-1, -2))
 
 
 # Eigenvalues of a symmetric matrix are computed with an absolute error of about
@@ -218,7 +218,7 @@ def lower_inverse(L):
 def cho_inverse(L):
     """Inverse of ``A = L L^T`` from its Cholesky factor, exactly symmetric."""
     L_inv = lower_inverse(L)
-    return np.swapaxes(L_inv, -1, -2) @ L_inv
+    return L_inv.swapaxes(-1, -2) @ L_inv
 
 
 def spd_inverse(A, name="matrix"):
@@ -241,7 +241,7 @@ def cho_solve(L, B):
         if info == 0:
             return X[..., 0] if vector else X
     Y = solve_lower(L, B2)
-    X = np.linalg.solve(np.swapaxes(L, -1, -2), Y)
+    X = np.linalg.solve(L.swapaxes(-1, -2), Y)
     return X[..., 0] if vector else X
 
 
@@ -301,7 +301,7 @@ def diagonalise_pair(L1, P2):
     Used by two-estimate CI (to reduce the weight to a scalar problem) and by EI.
     """
     L1_inv = lower_inverse(L1)
-    S = symmetrize(L1_inv @ P2 @ np.swapaxes(L1_inv, -1, -2))
+    S = symmetrize(L1_inv @ P2 @ L1_inv.swapaxes(-1, -2))
     lam, U = np.linalg.eigh(S)
     return DiagonalisedPair(L1_inv, lam, U, L1 @ U)
 

@@ -52,7 +52,7 @@ def _ci_problem(est, informations, terms, kind, W):
     if not terms.Gamma.any() and np.all(terms.Psi == np.eye(n)):
         return est, kind, W
     base = np.eye(n) if kind == "trace" else W
-    V = np.swapaxes(terms.Psi, -1, -2) @ base @ terms.Psi
+    V = terms.Psi.swapaxes(-1, -2) @ base @ terms.Psi
     if terms.Gamma.any():
         V = solve_lower(L, np.swapaxes(solve_lower(L, V), -1, -2))
     V = symmetrize(V)
@@ -90,7 +90,7 @@ def _det_parts(S, terms, weights):
     ``C = Psi^T Z^-1 Psi`` (without the factor ``exp(2 s)``)."""
     X = ci_fused_information(S, weights)
     LZ = cholesky(propagated_bound(terms, X), "propagated bound")
-    C = np.swapaxes(terms.Psi, -1, -2) @ cho_solve(LZ, terms.Psi)
+    C = terms.Psi.swapaxes(-1, -2) @ cho_solve(LZ, terms.Psi)
     return X, LZ, C
 
 
@@ -127,8 +127,8 @@ def _pair_det_weights(S, terms):
         X, _, C = parts(omega, index)
         M = C @ X @ D[index] @ X
         g = -np.trace(M, axis1=-2, axis2=-1)
-        h = 2.0 * ((M @ D[index]) * np.swapaxes(X, -1, -2)).sum(axis=(-2, -1)) - weight[
-            index] * (M * np.swapaxes(M, -1, -2)).sum(axis=(-2, -1))
+        h = 2.0 * ((M @ D[index]) * X.swapaxes(-1, -2)).sum(axis=(-2, -1)) - weight[
+            index] * (M * M.swapaxes(-1, -2)).sum(axis=(-2, -1))
         return g, h
 
     everything = np.arange(size)

@@ -45,7 +45,7 @@ class Problem(NamedTuple):
 def problem_of(est):
     """The :class:`Problem` of validated estimates (one inversion of the factors)."""
     L_inv = lower_inverse_stack(est.L)
-    return Problem(est, L_inv, np.swapaxes(L_inv, -1, -2) @ L_inv)
+    return Problem(est, L_inv, L_inv.swapaxes(-1, -2) @ L_inv)
 
 
 def _broadcast(problem, batch):

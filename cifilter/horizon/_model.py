@@ -92,7 +92,7 @@ def as_model(F, Q, H, R, G, n, steps=None):
         if G.shape[-2] != n:
             raise ValueError(f"G must have shape (..., {n}, m), got shape {G.shape}")
         Qm = check_psd(Q, G.shape[-1], "Q")
-        noise = symmetrize(G @ Qm @ np.swapaxes(G, -1, -2))
+        noise = symmetrize(G @ Qm @ G.swapaxes(-1, -2))
     if is_step_sequence(H) or (H is None and is_step_sequence(R)):
         if not (isinstance(R, (list, tuple)) and isinstance(H, (list, tuple))
                 and len(R) == len(H)):
@@ -184,7 +184,7 @@ def predict(P, model, e=None):
     """Eq. (16): F P F^T + G Q G^T (with P = 2^e P_hat: for P_hat, noise scaled by 2^-e)."""
     noise = model.noise if e is None or not e.any() else np.ldexp(model.noise,
                                                                    -e[..., None, None])
-    return symmetrize(model.F @ P @ np.swapaxes(model.F, -1, -2) + noise)
+    return symmetrize(model.F @ P @ model.F.swapaxes(-1, -2) + noise)
 
 
 def _scaled(measurement, e):
@@ -200,11 +200,11 @@ def update(M, measurement):
     """
     H, R = measurement
     HM = H @ M
-    S = symmetrize(HM @ np.swapaxes(H, -1, -2) + R)
+    S = symmetrize(HM @ H.swapaxes(-1, -2) + R)
     L = cholesky(S, "innovation covariance H M H^T + R")
     K = np.swapaxes(cho_solve(L, HM), -1, -2)
     A = np.eye(M.shape[-1]) - K @ H
-    P = A @ M @ np.swapaxes(A, -1, -2) + K @ R @ np.swapaxes(K, -1, -2)
+    P = A @ M @ A.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
     return symmetrize(P), A, L, H
 
 
@@ -291,7 +291,7 @@ def horizon_terms(model, horizon, n, collect=None):
                 e = np.broadcast_to(e, widened)
                 P_c, A, L, H = update(M, _scaled(measurement, e))
                 B = solve_lower(L, H @ Psi)
-                BtB = np.swapaxes(B, -1, -2) @ B
+                BtB = B.swapaxes(-1, -2) @ B
                 # Gamma is not scaled: the whitening by L = 2^(-e/2) L_true costs 2^-e.
                 weight = np.exp(2.0 * log_scale - _LN2 * e)[..., None, None]
                 Gamma = symmetrize(Gamma + np.where(BtB == 0.0, 0.0, weight * BtB))
@@ -325,7 +325,7 @@ def propagated_bound(terms, S_inverse):
     """
     weight = np.exp(2.0 * terms.log_scale)[..., None, None]
     return symmetrize(terms.P_c + weight * (terms.Psi @ S_inverse
-                                            @ np.swapaxes(terms.Psi, -1, -2)))
+                                            @ terms.Psi.swapaxes(-1, -2)))
 
 
 def broadcast_terms(terms, batch):

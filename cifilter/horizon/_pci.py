@@ -81,7 +81,7 @@ def _det_problem(informations, terms, rho):
     """``f(delta) = (log det Z(delta) - log det Z(1/N)) / exp(2 s) + const``, derivatives."""
     count = informations.shape[-3]
     scale = np.exp(2.0 * terms.log_scale)
-    Psi, Psi_T = terms.Psi, np.swapaxes(terms.Psi, -1, -2)
+    Psi, Psi_T = terms.Psi, terms.Psi.swapaxes(-1, -2)
     reference = np.full(informations.shape[:-3] + (count,), 1.0 / count)
     w_0, X_0 = _fused_inverse(reference, rho, informations, terms.Gamma)
     L_0 = cholesky(propagated_bound(terms, X_0), "propagated bound")
@@ -94,7 +94,7 @@ def _det_problem(informations, terms, rho):
         w, X = _fused_inverse(delta, rho, informations, terms.Gamma)
         change = X @ weighted_information(w_0 - w, informations) @ X_0  # X - X_0
         D = solve_lower(L_0, Psi @ symmetrize(change) @ Psi_T)
-        D = solve_lower(L_0, np.swapaxes(D, -1, -2))  # L_0^-1 Psi (X - X_0) Psi^T L_0^-T
+        D = solve_lower(L_0, D.swapaxes(-1, -2))  # L_0^-1 Psi (X - X_0) Psi^T L_0^-T
         lam = np.linalg.eigvalsh(symmetrize(D))
         return level + (lam * _log1p_ratio(scale[..., None] * lam)).sum(axis=-1), X
 
@@ -108,7 +108,7 @@ def _det_problem(informations, terms, rho):
         XI = X[..., None, :, :] @ informations  # X I_i
         M = C[..., None, :, :] @ XI @ X[..., None, :, :]  # M_i = C X I_i X
         g_w = -np.trace(M, axis1=-2, axis2=-1)
-        IX = np.swapaxes(XI, -1, -2)  # I_i X
+        IX = XI.swapaxes(-1, -2)  # I_i X
         H_w = 2.0 * np.einsum("...iab,...jba->...ij", M, IX)
         H_w = H_w - scale[..., None, None] * np.einsum("...iab,...jba->...ij", M, M)
         return f, g_w, H_w
@@ -127,7 +127,7 @@ def _problem(informations, terms, rho, weight):
     if weight is None:
         return _det_problem(informations, terms, rho) + (scale,)
     Psi = terms.Psi
-    V = symmetrize(np.swapaxes(Psi, -1, -2) @ weight @ Psi)
+    V = symmetrize(Psi.swapaxes(-1, -2) @ weight @ Psi)
     size = np.abs(V).max(axis=(-2, -1))
     flat = size == 0.0
     V = np.where(flat[..., None, None], np.eye(V.shape[-1]),
