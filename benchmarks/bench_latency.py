@@ -8,7 +8,7 @@ ways in the same process and the same run:
 * ``rule``: the rule's own public function (for ``horizon=`` the public
   :func:`cifilter.horizon.horizon_weights` followed by the rule with those weights);
 
-each as the median over repeats of the mean time of a loop of calls, and each divided by the
+each as the best of several timing loops of calls (per call), and each divided by the
 time of filterpy's ``update`` on the same filter. Run it with
 
     python benchmarks/bench_latency.py            # the table
@@ -174,7 +174,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tree", help="import cifilter from this source tree")
     parser.add_argument("--number", type=int, default=200, help="calls per timing loop")
-    parser.add_argument("--repeat", type=int, default=7, help="timing loops (median)")
+    parser.add_argument("--repeat", type=int, default=7, help="timing loops (the best counts)")
     parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
     parser.add_argument("--only", help="comma-separated labels of the rows to time")
     args = parser.parse_args(argv)
