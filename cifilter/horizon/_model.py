@@ -7,6 +7,7 @@ power-of-two scale, and the checked unscaling of bounds and criteria. Derivation
 scaling scheme: ``docs/methods/horizon.rst``.
 """
 
+import math
 import numbers
 from typing import NamedTuple, Optional
 
@@ -256,6 +257,73 @@ def _record(P_c, Psi, s, Gamma, e):
     return Terms(P_c, Psi, relative, Gamma, e)
 
 
+def _single_problem(model):
+    """Whether the model has no batch axes (one local filter): then the recursion runs on
+    2-D arrays with scalar scales (:func:`_single_horizon_terms`)."""
+    if model.F.ndim != 2 or model.noise.ndim != 2:
+        return False
+    entries = (model.constant,) if model.steps is None else model.steps
+    return all(m is None or (m[0].ndim == 2 and m[1].ndim == 2) for m in entries)
+
+
+def _single_horizon_terms(model, horizon, n, wanted):
+    """:func:`horizon_terms` for one problem: the same recursion, scales and checks, with the
+    exponents and log-scales as Python numbers (a single fusion pays for every call)."""
+    F, FT = model.F, model.F.T
+    eye = np.eye(n)
+    P_c, Psi, Gamma = np.zeros((n, n)), eye.copy(), np.zeros((n, n))
+    log_scale, e = 0.0, 0
+    found = []
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        for step in range(horizon + 1):
+            if step in wanted:
+                found.append(_record(P_c, Psi, np.array(log_scale), Gamma,
+                                     np.array(e, dtype=np.int64)))
+            if step == horizon:
+                break
+            noise = model.noise if e == 0 else np.ldexp(model.noise, -e)
+            M = F @ P_c @ FT + noise
+            M = 0.5 * (M + M.T)
+            Psi = F @ Psi
+            measurement = model.measurement(step)
+            if measurement is not None:
+                H, R = measurement
+                if e:
+                    R = np.ldexp(R, -e)
+                HM = H @ M
+                S = HM @ H.T + R
+                L = cholesky(0.5 * (S + S.T), "innovation covariance H M H^T + R")
+                K = cho_solve(L, HM).T
+                A = eye - K @ H
+                P_c = A @ M @ A.T + K @ R @ K.T
+                P_c = 0.5 * (P_c + P_c.T)
+                B = solve_lower(L, H @ Psi)
+                BtB = B.T @ B
+                weight = math.exp(2.0 * log_scale - _LN2 * e)
+                term = weight * BtB if math.isfinite(weight) else np.where(
+                    BtB == 0.0, 0.0, weight * BtB)
+                Gamma = Gamma + term
+                Gamma = 0.5 * (Gamma + Gamma.T)
+                Psi = A @ Psi
+            else:
+                P_c = M
+            size = float(np.abs(Psi).max())
+            if size > 0:
+                Psi = Psi / size
+                log_scale += math.log(size)
+            top = float(np.abs(P_c).max())
+            if top > 0:
+                exponent = math.frexp(top)[1]
+                if exponent > RESCALE_LOG2:
+                    P_c = np.ldexp(P_c, -exponent)
+                    e += exponent
+            if not math.isfinite(float(P_c.sum()) + float(Gamma.sum()) + float(Psi.sum())):
+                _check_finite(step + 1, horizon, **{"the bound P_c": P_c,
+                                                    "the information Gamma": Gamma,
+                                                    "the transition Psi": Psi})
+    return found
+
+
 def horizon_terms(model, horizon, n, collect=None):
     """Run the Riccati recursion from P = 0 and return the terms of (*) at ``horizon``.
 
@@ -269,13 +337,16 @@ def horizon_terms(model, horizon, n, collect=None):
     overflows for unstable models; ValueError names the step if ``Gamma`` (which is not
     scaled) or a scaled term still overflows.
     """
+    wanted = [horizon] if collect is None else list(collect)
+    if _single_problem(model):
+        found = _single_horizon_terms(model, horizon, n, wanted)
+        return found if collect is not None else found[0]
     batch = np.broadcast_shapes(model.F.shape[:-2], model.noise.shape[:-2])
     P_c = np.zeros(batch + (n, n))
     Psi = np.broadcast_to(np.eye(n), batch + (n, n)).copy()
     log_scale = np.zeros(batch)  # s of Psi = exp(s) Psi_hat (absolute)
     e = np.zeros(batch, dtype=np.int64)  # P_c = 2^e P_c_hat
     Gamma = np.zeros(batch + (n, n))
-    wanted = [horizon] if collect is None else list(collect)
     found = []
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):
         for step in range(horizon + 1):
