@@ -162,6 +162,20 @@ def minimize_convex_scalar(derivative, *, scale, xtol=1e-13, max_iter=100):
     return w, max_iter, False
 
 
+def _towards_best_vertices(where, w, g, g_scale, d, slope, free):
+    """A Frank-Wolfe direction for the problems ``where`` (the rest keep ``d``).
+
+    Every vertex within rounding of the smallest gradient gets the same share, so that
+    equal inputs keep equal weights; ``g.d = min g - w.g < 0``, a feasible descent
+    direction. Returns the new ``d``, its slope and the free set with those vertices.
+    """
+    best = g <= g.min(axis=-1, keepdims=True) + 1e-12 * g_scale[..., None]
+    target = best / best.sum(axis=-1, keepdims=True)
+    d = np.where(where[..., None], target - w, d)
+    slope = np.where(where, np.einsum("...i,...i->...", g, d), slope)
+    return d, slope, free | (where[..., None] & best)
+
+
 def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, max_iter=200,
                             gtol=0.0, absolute_gap=False, subset=False):
     """Minimise smooth convex functions over the probability simplex, batched.
@@ -351,13 +365,7 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         free = free | (releasing[..., None] & chosen)
 
         if stuck.any():
-            # Every vertex within rounding of the smallest gradient gets the same share,
-            # so that equal inputs keep equal weights.
-            best = g <= g.min(axis=-1, keepdims=True) + 1e-12 * g_scale[..., None]
-            target = best / best.sum(axis=-1, keepdims=True)
-            d = np.where(stuck[..., None], target - w, d)
-            slope = np.where(stuck, np.einsum("...i,...i->...", g, d), slope)
-            free = free | (stuck[..., None] & best)
+            d, slope, free = _towards_best_vertices(stuck, w, g, g_scale, d, slope, free)
 
         stepping = (active & ~small) | last | stuck
         if not stepping.any():
@@ -368,14 +376,11 @@ def minimize_convex_simplex(evaluate, objective, count, shape, *, xtol=1e-12, ma
         # A weight just released at zero whose Newton step on the enlarged face points below
         # zero blocks that step at length zero (the affine optimum of the face lies outside
         # the simplex), although releasing it decreases f. Step towards the vertices of
-        # smallest gradient instead (a feasible descent direction, g.d = min g - w.g < 0).
+        # smallest gradient instead.
         blocked_at_zero = stepping & (t_max <= 0.0)
         if blocked_at_zero.any():
-            best = g <= g.min(axis=-1, keepdims=True) + 1e-12 * g_scale[..., None]
-            target = best / best.sum(axis=-1, keepdims=True)
-            d = np.where(blocked_at_zero[..., None], target - w, d)
-            slope = np.where(blocked_at_zero, np.einsum("...i,...i->...", g, d), slope)
-            free = free | (blocked_at_zero[..., None] & best)
+            d, slope, free = _towards_best_vertices(blocked_at_zero, w, g, g_scale, d, slope,
+                                                    free)
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = np.where(free & (d < 0), w / -d, np.inf)
             t_max = np.where(blocked_at_zero, ratio.min(axis=-1), t_max)
