@@ -13,10 +13,12 @@ import numpy as np
 
 from ._criteria import GAP_TOL, certified_gap, criterion_gradient, criterion_of_factor
 from ._information import (
+    DIAGONAL_TRUST,
     diagonal_spread_squared,
     information_factors,
     information_matrices,
     lower_inverse_stack,
+    single_diagonalisation_trusted,
     squared_norms,
     trace_curvature,
     weighted_fusion,
@@ -90,12 +92,6 @@ FAST_OMEGA_RULES = {
 """Non-iterative weight rules accepted as ``omega=<name>``."""
 
 
-# The diagonalised two-estimate solver is trusted (its gap and its assembly used as they
-# are) where the eigenvalues it rests on are accurate: their spread, and the squared
-# diagonal spread of both Cholesky factors, at most this (rounding of eps * 1e6 = 2e-10
-# relative, well below GAP_TOL). Elsewhere the Cholesky-based path decides.
-_DIAGONAL_TRUST = 1e6
-
 
 class _Diagonalised(NamedTuple):
     """The two-estimate problem in the basis that diagonalises both covariances."""
@@ -161,7 +157,7 @@ def _diagonalised_weights(est, kind, W, L1_inv):
         spread = lam_flat.max(axis=-1) / lam_flat.min(axis=-1)
     conditioning = np.maximum(diagonal_spread_squared(est.L[..., 0, :, :]),
                               diagonal_spread_squared(est.L[..., 1, :, :])).reshape(size)
-    trusted = (usable & (spread <= _DIAGONAL_TRUST) & (conditioning <= _DIAGONAL_TRUST)
+    trusted = (usable & (spread <= DIAGONAL_TRUST) & (conditioning <= DIAGONAL_TRUST)
                & np.isfinite(gap))
     shape = est.batch_shape
     return _Diagonalised(omega.reshape(shape), iterations.reshape(shape),
@@ -331,13 +327,8 @@ def _single_pair(est, kind, W):
     S = L1_inv @ est.P[1] @ L1_inv.T
     lam, U = eigh_single(0.5 * (S + S.T))
     lam_list = lam.tolist()
-    low, high = lam_list[0], lam_list[-1]
-    if not (low > 0.0 and math.isfinite(high)) or high > _DIAGONAL_TRUST * low:
+    if not single_diagonalisation_trusted(lam_list, (L1, L2)):
         return None
-    for L in (L1, L2):
-        d = [abs(v) for v in L.diagonal().tolist()]
-        if max(d) ** 2 > _DIAGONAL_TRUST * min(d) ** 2:
-            return None
     T = L1 @ U
     a = [value - 1.0 for value in lam_list]
     if kind == "det":

@@ -37,6 +37,7 @@ from ._linalg import (
 )
 
 __all__ = [
+    "DIAGONAL_TRUST",
     "InformationFactors",
     "WeightedFusion",
     "checked_cholesky",
@@ -44,6 +45,7 @@ __all__ = [
     "information_factors",
     "information_matrices",
     "lower_inverse_stack",
+    "single_diagonalisation_trusted",
     "squared_norms",
     "trace_curvature",
     "weighted_fusion",
@@ -85,6 +87,27 @@ class WeightedFusion(NamedTuple):
     P: np.ndarray  # (..., n, n) bound of the gains, symmetric positive definite
     gains: np.ndarray  # (..., N, n, n), summing to the identity
     factors: "InformationFactors"  # of P^-1 = sum_i w_i P_i^-1 (gradients of the criteria)
+
+
+# A simultaneous diagonalisation of two covariances (the two-estimate solvers of CI and
+# partial CI) is trusted where the eigenvalues it rests on are accurate: their spread, and
+# the squared diagonal spread of both Cholesky factors, at most this (rounding of
+# eps * 1e6 = 2e-10 relative, well below the solvers' gap tolerances). Elsewhere the
+# Cholesky-based paths decide.
+DIAGONAL_TRUST = 1e6
+
+
+def single_diagonalisation_trusted(lam, factors):
+    """:data:`DIAGONAL_TRUST` for one problem: ``lam`` the ascending generalised eigenvalues
+    (a list of floats), ``factors`` the two triangular Cholesky factors (or their inverses,
+    whose squared diagonal spread is the same)."""
+    if not (lam[0] > 0.0 and math.isfinite(lam[-1])) or lam[-1] > DIAGONAL_TRUST * lam[0]:
+        return False
+    for factor in factors:
+        d = [abs(v) for v in factor.diagonal().tolist()]
+        if max(d) ** 2 > DIAGONAL_TRUST * min(d) ** 2:
+            return False
+    return True
 
 
 def diagonal_spread_squared(L):

@@ -8,11 +8,15 @@ their input (validated inverse Cholesky factors ``L_inv`` of the covariances).
 Derivations: ``docs/methods/pci.rst``.
 """
 
-import math
 
 import numpy as np
 
-from ._information import information_factors, squared_norms, trace_curvature
+from ._information import (
+    information_factors,
+    single_diagonalisation_trusted,
+    squared_norms,
+    trace_curvature,
+)
 from ._linalg import eigh_single, lower_inverse_single, symmetrize
 from ._optimize import minimize_convex_interval, minimize_convex_scalar, minimize_convex_simplex
 from ._validation import as_float_array, check_finite
@@ -175,12 +179,6 @@ def alternating_delta(L_inv, rho, tol, max_iter, start=None):
 NEWTON_RHO_FLOOR = 1e-8
 
 
-# The diagonalised two-estimate problem is trusted where its eigenvalues are accurate, as
-# for two-estimate CI (cifilter._ci_weights): their spread and the squared diagonal spread
-# of both Cholesky factors at most this.
-_DIAGONAL_TRUST = 1e6
-
-
 def _weight_and_derivatives(delta, rho):
     """Eq. (24) and its first two derivatives at one float ``delta`` (``rho = 0``: 1, 0, 0)."""
     if rho == 0.0:
@@ -204,13 +202,8 @@ def _single_pair_delta(L_inv, rho, max_iter):
     G = L_inv[0] @ lower_inverse_single(L_inv[1])  # L_1^-1 L_2
     lam, U = eigh_single(G @ G.T)
     lam_list = lam.tolist()
-    if not (lam_list[0] > 0.0 and math.isfinite(lam_list[-1])) or (
-            lam_list[-1] > _DIAGONAL_TRUST * lam_list[0]):
+    if not single_diagonalisation_trusted(lam_list, L_inv):
         return None
-    for factor in L_inv:  # the squared diagonal spread of L_i equals that of L_i^-1
-        d = [abs(v) for v in factor.diagonal().tolist()]
-        if max(d) ** 2 > _DIAGONAL_TRUST * min(d) ** 2:
-            return None
     c = np.square(L1 @ U).sum(axis=0).tolist()
     terms = [(ck * lk, lk) for ck, lk in zip(c, lam_list)]
     rho_1, rho_2 = float(rho[0]), float(rho[1])
