@@ -15,6 +15,7 @@ __all__ = [
     "interval_gap",
     "minimize_convex_interval",
     "minimize_convex_scalar",
+    "minimize_convex_segment",
     "minimize_convex_simplex",
 ]
 
@@ -160,6 +161,52 @@ def minimize_convex_scalar(derivative, *, scale, xtol=1e-13, max_iter=100):
         if settled or hi - lo < xtol:
             return w, iteration, True
     return w, max_iter, False
+
+
+def minimize_convex_segment(evaluate, size, *, scale, max_iter=100):
+    """Minimise ``size`` convex functions of two weights on the segment ``w = (t, 1 - t)``.
+
+    The simplex of two estimates is a segment: ``f'(t) = g_1 - g_2`` and
+    ``f''(t) = H_11 - 2 H_12 + H_22`` from the gradient and Hessian in ``w``, minimised by
+    :func:`minimize_convex_interval` (one problem: :func:`minimize_convex_scalar`, the same
+    iteration without the batch bookkeeping).
+
+    Parameters
+    ----------
+    evaluate : callable
+        ``evaluate(w, index) -> (f, g, H)`` for the problems ``index`` at ``w``
+        (len(index), 2): gradient (len(index), 2) and Hessian (len(index), 2, 2).
+    size : int
+        Number of problems.
+    scale : ndarray, shape (size,)
+        Typical magnitude of ``f`` (the flatness test of :func:`minimize_convex_interval`).
+    max_iter : int
+        Iteration limit.
+
+    Returns
+    -------
+    w : ndarray, shape (size, 2)
+        Minimisers, exactly ``(1, 0)`` or ``(0, 1)`` at an end.
+    iterations, converged : ndarray, shape (size,)
+    """
+    def derivatives(t, index):
+        _, g, H = evaluate(np.stack([t, 1.0 - t], axis=-1), index)
+        return g[:, 0] - g[:, 1], H[:, 0, 0] - 2.0 * H[:, 0, 1] + H[:, 1, 1]
+
+    if size == 1:
+        only = np.zeros(1, dtype=int)
+
+        def derivative(t):
+            slope, curvature = derivatives(np.array([t]), only)
+            return float(slope[0]), float(curvature[0])
+
+        t, iterations, converged = minimize_convex_scalar(
+            derivative, scale=float(scale[0]), max_iter=max_iter)
+        t, iterations, converged = np.array([t]), np.array([iterations]), np.array([converged])
+    else:
+        t, iterations, converged = minimize_convex_interval(derivatives, size, scale=scale,
+                                                            max_iter=max_iter)
+    return np.stack([t, 1.0 - t], axis=-1), iterations, converged
 
 
 def _towards_best_vertices(where, w, g, g_scale, d, slope, free):

@@ -18,7 +18,11 @@ from ._information import (
     trace_curvature,
 )
 from ._linalg import eigh_single, lower_inverse_single, symmetrize
-from ._optimize import minimize_convex_interval, minimize_convex_scalar, minimize_convex_simplex
+from ._optimize import (
+    minimize_convex_scalar,
+    minimize_convex_segment,
+    minimize_convex_simplex,
+)
 from ._validation import as_float_array, check_finite
 
 __all__ = [
@@ -229,34 +233,14 @@ def _single_pair_delta(L_inv, rho, max_iter):
 
 def _pair_newton(evaluate, objective, size, max_iter):
     """Two estimates: Newton on ``delta = (t, 1 - t)``, the same safeguarded interval
-    method as two-estimate CI (``f'(t) = g_1 - g_2``, ``f''(t) = H_11 - 2 H_12 + H_22``).
-
-    One problem runs the scalar form of the iteration.
-    """
+    method as two-estimate CI (:func:`cifilter._optimize.minimize_convex_segment`)."""
     everything = np.arange(size)
     # the magnitude of Tr P for the flatness test: its value in the middle of the segment
     scale = objective(np.full((size, 2), 0.5), everything)
-
-    def derivatives(t, index):
-        _, g, H = evaluate(np.stack([t, 1.0 - t], axis=-1), index)
-        return g[:, 0] - g[:, 1], H[:, 0, 0] - 2.0 * H[:, 0, 1] + H[:, 1, 1]
-
     with np.errstate(invalid="ignore", divide="ignore"):
-        if size == 1:
-            only = np.zeros(1, dtype=int)
-
-            def derivative(t):
-                slope, curvature = derivatives(np.array([t]), only)
-                return float(slope[0]), float(curvature[0])
-
-            t, steps, _ = minimize_convex_scalar(derivative, scale=float(scale[0]),
-                                                 max_iter=max_iter)
-            t, steps = np.array([t]), np.array([steps])
-        else:
-            t, steps, _ = minimize_convex_interval(derivatives, size, scale=scale,
-                                                   max_iter=max_iter)
-    return np.stack([t, 1.0 - t], axis=-1), steps
-
+        delta, steps, _ = minimize_convex_segment(evaluate, size, scale=scale,
+                                                  max_iter=max_iter)
+    return delta, steps
 
 def newton_delta(L_inv, rho, tol, max_iter):
     """Minimise ``Tr P(delta)`` (eq. (35)) by the active-set Newton method on the simplex.

@@ -9,7 +9,11 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.optimize import minimize
 
-from cifilter._optimize import minimize_convex_interval, minimize_convex_simplex
+from cifilter._optimize import (
+    minimize_convex_interval,
+    minimize_convex_segment,
+    minimize_convex_simplex,
+)
 
 EPS = np.finfo(float).eps
 
@@ -550,3 +554,27 @@ def test_simplex_solver_stops_when_the_decrement_is_below_rounding():
     w, iterations, converged = minimize_convex_simplex(evaluate, objective, 2, (3,))
     assert converged.all() and iterations.max() <= 1
     np.testing.assert_allclose(w.sum(axis=-1), 1.0)
+
+
+def test_segment_minimiser_equals_the_simplex_of_two_and_one_problem_its_batch():
+    """Quadratics of two weights: the segment method reaches each exact minimum (interior or
+    an end), and one problem alone gives what it gives in a batch."""
+    A = np.array([[[2.0, 0.5], [0.5, 1.0]], [[1.0, 0.0], [0.0, 1.0]], [[3.0, 1.0], [1.0, 2.0]]])
+    c = np.array([[0.3, 0.2], [5.0, -5.0], [-4.0, 6.0]])  # interior, at (1, 0), at (0, 1)
+    evaluate, objective = quadratic(A, c)
+
+    def rows(w, index):
+        return evaluate(w, index)
+
+    scale = objective(np.full((3, 2), 0.5))
+    w, iterations, converged = minimize_convex_segment(rows, 3, scale=scale)
+    assert converged.all()
+    for k in range(3):
+        assert objective(w[k], k) == pytest.approx(exact_quadratic_minimum(A[k], c[k]),
+                                                   rel=1e-12)
+        alone, steps, _ = minimize_convex_segment(
+            lambda v, index, k=k: evaluate(v, np.array([k])), 1, scale=scale[k:k + 1])
+        np.testing.assert_allclose(alone[0], w[k], rtol=0, atol=1e-12)
+        assert steps[0] == iterations[k]
+    np.testing.assert_array_equal(w[1], [1.0, 0.0])
+    np.testing.assert_array_equal(w[2], [0.0, 1.0])

@@ -13,7 +13,7 @@ import numpy as np
 
 from .._information import squared_norms, weighted_information
 from .._linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
-from .._optimize import minimize_convex_scalar, minimize_convex_simplex
+from .._optimize import minimize_convex_segment, minimize_convex_simplex
 from .._partial_correlation import (
     NEWTON_RHO_FLOOR,
     bound_and_spread,
@@ -198,18 +198,17 @@ def pci_horizon_delta(L_inv, informations, terms, rho, weight=None):
         return (f,) + _chain(g_w, H_w, delta, floored)
 
     if informations.shape[-3:-2] == (2,) and informations.ndim == 3:
-        # one problem of two estimates: the interval method of two-estimate CI on
-        # delta = (t, 1 - t) (f' = g_1 - g_2, f'' = H_11 - 2 H_12 + H_22), without the
+        # one problem of two estimates: the segment method of two-estimate CI, without the
         # simplex solver's batch bookkeeping
-        def derivative(t):
-            _, g, H = evaluate(np.array([t, 1.0 - t]))
-            return float(g[0] - g[1]), float(H[0, 0] - 2.0 * H[0, 1] + H[1, 1])
+        def evaluate_one(w, index):
+            f, g, H = evaluate(w[0])
+            return f, g[None], H[None]
 
-        scale = abs(float(objective(np.array([0.5, 0.5]))))
+        scale = np.array([abs(float(objective(np.array([0.5, 0.5]))))])
         with np.errstate(all="ignore"):
-            t, iterations, converged = minimize_convex_scalar(derivative, scale=scale)
-        delta = np.array([t, 1.0 - t])
-        iterations, converged = np.array(iterations), np.array(converged)
+            delta, iterations, converged = minimize_convex_segment(evaluate_one, 1,
+                                                                   scale=scale)
+        delta, iterations, converged = delta[0], iterations.reshape(()), converged.reshape(())
     else:
         delta, iterations, converged = minimize_convex_simplex(
             evaluate, objective, informations.shape[-3], informations.shape[:-3])
