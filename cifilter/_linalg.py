@@ -6,14 +6,12 @@ results are symmetric and positive definite by construction rather than by luck.
 """
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import lapack
 
 __all__ = [
     "MAX_CONDITION",
-    "DiagonalisedPair",
     "IllConditionedError",
     "cho_inverse",
     "cho_solve",
@@ -21,7 +19,6 @@ __all__ = [
     "cholesky_failures",
     "cholesky_single",
     "condition_number",
-    "diagonalise_pair",
     "eigh_single",
     "ill_conditioned",
     "logdet_from_cholesky",
@@ -29,7 +26,6 @@ __all__ = [
     "lower_inverse_single",
     "mahalanobis_sq",
     "solve_lower",
-    "spd_inverse",
     "symmetrize",
 ]
 
@@ -221,14 +217,6 @@ def cho_inverse(L):
     return L_inv.swapaxes(-1, -2) @ L_inv
 
 
-def spd_inverse(A, name="matrix"):
-    """Inverse of symmetric positive definite matrices through their Cholesky factor.
-
-    Raises ``ValueError`` naming ``name`` when a matrix is not positive definite.
-    """
-    return cho_inverse(cholesky(A, name))
-
-
 def cho_solve(L, B):
     """Solve ``(L L^T) X = B`` for a stack of Cholesky factors.
 
@@ -282,28 +270,6 @@ def mahalanobis_sq(e, P):
     L = np.broadcast_to(L, e.shape[:-1] + L.shape[-2:])
     z = solve_lower(L, e[..., None])[..., 0]
     return np.einsum("...i,...i->...", z, z)
-
-
-class DiagonalisedPair(NamedTuple):
-    """Simultaneous diagonalisation of two covariances: P_1 = T T^T, P_2 = T diag(lam) T^T."""
-
-    L1_inv: np.ndarray  # (..., n, n), inverse of the Cholesky factor of P_1
-    lam: np.ndarray  # (..., n), eigenvalues of L1^-1 P_2 L1^-T (ascending)
-    U: np.ndarray  # (..., n, n), its eigenvectors
-    T: np.ndarray  # (..., n, n), L1 U
-
-
-def diagonalise_pair(L1, P2):
-    """Diagonalise ``P_1 = L1 L1^T`` and ``P_2`` simultaneously (stacks of matrices).
-
-    With ``L1^-1 P_2 L1^-T = U diag(lam) U^T`` and ``T = L1 U``: ``P_1 = T T^T`` and
-    ``P_2 = T diag(lam) T^T``; ``lam`` are the generalised eigenvalues of ``(P_2, P_1)``.
-    Used by two-estimate CI (to reduce the weight to a scalar problem) and by EI.
-    """
-    L1_inv = lower_inverse(L1)
-    S = symmetrize(L1_inv @ P2 @ L1_inv.swapaxes(-1, -2))
-    lam, U = np.linalg.eigh(S)
-    return DiagonalisedPair(L1_inv, lam, U, L1 @ U)
 
 
 # Single matrices: LAPACK called directly. numpy's linalg functions cost several

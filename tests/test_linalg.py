@@ -8,7 +8,6 @@ from cifilter._linalg import (
     cho_inverse,
     cho_solve,
     cholesky,
-    diagonalise_pair,
     logdet_from_cholesky,
     lower_inverse,
     mahalanobis_sq,
@@ -38,18 +37,6 @@ def test_triangular_and_cholesky_solves_match_lapack(size, n):
     np.testing.assert_allclose(cho_solve(L, b), np.linalg.solve(P, b[..., None])[..., 0],
                                rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(logdet_from_cholesky(L), np.linalg.slogdet(P)[1], rtol=1e-10)
-
-
-@pytest.mark.parametrize("size", [(), (4,)])
-def test_simultaneous_diagonalisation_reproduces_both_covariances(size):
-    P1, P2 = spd(size, 3), spd(size, 3)
-    pair = diagonalise_pair(cholesky(P1), P2)
-    T = pair.T
-    np.testing.assert_allclose(T @ np.swapaxes(T, -1, -2), P1, rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose((T * pair.lam[..., None, :]) @ np.swapaxes(T, -1, -2), P2,
-                               rtol=1e-10, atol=1e-12)
-    generalised = np.sort(np.linalg.eigvals(np.linalg.solve(P1, P2)).real, axis=-1)
-    np.testing.assert_allclose(pair.lam, generalised, rtol=1e-8)
 
 
 def test_mahalanobis_broadcasts_and_matches_the_definition():
