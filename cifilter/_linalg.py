@@ -158,7 +158,7 @@ def cholesky(A, name="matrix"):
     A = np.asarray(A, dtype=float)
     if A.ndim == 2 and A.shape[0] == A.shape[1]:  # one matrix: LAPACK directly
         L = cholesky_single(A)
-        if L is not None and np.isfinite(L).all():
+        if L is not None:  # (a finite diagonal: finite input gives a finite factor)
             return L
     try:
         L = np.linalg.cholesky(A)
