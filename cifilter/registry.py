@@ -171,7 +171,7 @@ def register_method(name, function, *, summary="", reference="", guarantee="none
     ------
     TypeError
         If ``name`` is not a string or ``function``, ``core``, ``horizon`` or
-        ``truth_options`` is not callable.
+        ``truth_options`` is not callable, or ``horizon`` is given without ``core``.
     ValueError
         If ``name`` is empty, already registered and ``replace`` is False, or
         ``guarantee`` is not one of the three values.
@@ -200,6 +200,9 @@ def register_method(name, function, *, summary="", reference="", guarantee="none
                             ("horizon", horizon)):
         if value is not None and not callable(value):
             raise TypeError(f"{argument} must be callable or None")
+    if horizon is not None and core is None:
+        raise TypeError("horizon= needs core=: the front door fuses with the chosen weights "
+                        "through the rule's core")
     if name in _REGISTRY and not replace:
         raise ValueError(f"a fusion method named {name!r} is already registered")
     record = FusionMethod(name, function, summary, reference, guarantee, truth_options,

@@ -65,6 +65,7 @@ def test_rule_returning_something_else_is_a_type_error(scratch_registry):
     (dict(name="x", function=3), TypeError),
     (dict(name="x", function=len, guarantee="maybe"), ValueError),
     (dict(name="x", function=len, truth_options=3), TypeError),
+    (dict(name="x", function=len, horizon=len), TypeError),  # a horizon hook needs a core
 ])
 def test_bad_registrations_are_rejected(scratch_registry, kwargs, error):
     with pytest.raises(error):
