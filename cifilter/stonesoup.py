@@ -37,7 +37,7 @@ try:
         KernelParticleState,
         ParticleState,
         SqrtGaussianState,
-        State,
+        StateMutableSequence,
     )
     from stonesoup.types.update import Update
     from stonesoup.updater.base import Updater
@@ -94,7 +94,7 @@ _SAMPLED = (ParticleState, EnsembleState, KernelParticleState)
 
 def _latest_state(item):
     """A Track's latest state; other objects unchanged."""
-    if hasattr(item, "states") and hasattr(item, "state") and not isinstance(item, State):
+    if isinstance(item, StateMutableSequence):
         if len(item) == 0:
             raise ValueError("a track without states cannot be fused")
         return item.state
