@@ -18,7 +18,7 @@ condition numbers up to 1e3). Timed in the same process on the same pairs:
 It prints the time per pair, the ratio to Stone Soup's merge, and the mean trace of the
 fused covariance (equal weights against optimal weights).
 
-    python benchmarks/bench_stonesoup.py              # 2000 pairs (about a minute)
+    python benchmarks/bench_stonesoup.py              # 2000 pairs, 5 rounds (about a minute)
     python benchmarks/bench_stonesoup.py --pairs 500
 """
 
@@ -76,45 +76,48 @@ def batched(states):
     return fused, result
 
 
-def timed(function, repeats, setup=None):
-    """Best time of ``function(setup())`` (the setup, e.g. fresh hypotheses, not timed)."""
-    best, out = np.inf, None
+def interleaved(cases, repeats):
+    """Best time of each case over ``repeats`` rounds; every round runs all cases in turn,
+    so a load change on a shared machine affects them alike. A case is ``(function,
+    setup)``: ``function(setup())`` is timed, the setup (fresh hypotheses) is not."""
+    best = {name: np.inf for name in cases}
+    out = {}
     for _ in range(repeats):
-        data = setup() if setup is not None else None
-        start = time.perf_counter()
-        out = function(data) if setup is not None else function()
-        best = min(best, time.perf_counter() - start)
-    return best, out
+        for name, (function, setup) in cases.items():
+            data = setup() if setup is not None else None
+            start = time.perf_counter()
+            out[name] = function(data) if setup is not None else function()
+            best[name] = min(best[name], time.perf_counter() - start)
+    return {name: (best[name], out[name]) for name in cases}
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=2000)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     states = make_pairs(args.pairs, 4, args.seed)
 
-    cases = {}
-    cases["stonesoup CovarianceIntersection (equal w)"] = timed(
-        lambda: [CovarianceIntersection.merge_components(a, b) for a, b in states],
-        args.repeats)
-    chernoff = ChernoffUpdater(None)
-    cases["stonesoup ChernoffUpdater (omega=0.5)"] = timed(
-        lambda hs: [chernoff.update(h) for h in hs], args.repeats, lambda: hypotheses(states))
-    ours = FusionUpdater()
-    cases["cifilter FusionUpdater (optimal omega)"] = timed(
-        lambda hs: [ours.update(h) for h in hs], args.repeats, lambda: hypotheses(states))
-    cases["cifilter OptimalCovarianceIntersection"] = timed(
-        lambda: [OptimalCovarianceIntersection.merge_components(a, b) for a, b in states],
-        args.repeats)
-    cases["cifilter.fuse batched (+ GaussianStates)"] = timed(lambda: batched(states),
-                                                            args.repeats)
+    chernoff, ours = ChernoffUpdater(None), FusionUpdater()
     stacked = stack(states)
-    core_seconds, core_result = timed(
-        lambda: cifilter.fuse([(stacked[0][:, 0], stacked[1][:, 0]),
-                               (stacked[0][:, 1], stacked[1][:, 1])], method="ci"),
-        args.repeats)
+    fresh = lambda: hypotheses(states)  # noqa: E731  (updates write into hypotheses)
+    cases = interleaved({
+        "stonesoup CovarianceIntersection (equal w)": (
+            lambda: [CovarianceIntersection.merge_components(a, b) for a, b in states], None),
+        "stonesoup ChernoffUpdater (omega=0.5)": (
+            lambda hs: [chernoff.update(h) for h in hs], fresh),
+        "cifilter FusionUpdater (optimal omega)": (
+            lambda hs: [ours.update(h) for h in hs], fresh),
+        "cifilter OptimalCovarianceIntersection": (
+            lambda: [OptimalCovarianceIntersection.merge_components(a, b) for a, b in states],
+            None),
+        "cifilter.fuse batched (+ GaussianStates)": (lambda: batched(states), None),
+        "cifilter.fuse batched (arrays only)": (
+            lambda: cifilter.fuse([(stacked[0][:, 0], stacked[1][:, 0]),
+                                   (stacked[0][:, 1], stacked[1][:, 1])], method="ci"), None),
+    }, args.repeats)
+    core_seconds, core_result = cases.pop("cifilter.fuse batched (arrays only)")
 
     base = cases["stonesoup CovarianceIntersection (equal w)"][0]
     print(f"{args.pairs} pairs of 4-state tracks; best of {args.repeats}; "
