@@ -47,6 +47,7 @@ except ImportError as error:  # pragma: no cover - exercised only without Stone 
         "pip install cifilter[stonesoup]"
     ) from error
 
+from ._criteria import parse_criterion
 from .registry import fuse, get_method
 from .result import FusionResult
 
@@ -248,8 +249,16 @@ def to_gaussian_state(x, P=None, timestamp=None):
 
 # ------------------------------------------------------------------------------ the rules
 def _check_rule(method, criterion, omega, options):
-    """Validate the rule settings of the components; return the options for ``fuse``."""
+    """Validate the rule settings of the components; return the options for ``fuse``.
+
+    Called at construction (early errors) and at every use, so that properties changed
+    after construction take effect, as they do in Stone Soup's own components.
+    """
     record = get_method(method)  # ValueError listing the registered methods
+    if isinstance(criterion, str) and criterion not in ("trace", "det"):
+        raise ValueError(  # a weight matrix is checked when its size is known
+            f"criterion must be 'trace', 'det' or a positive semidefinite weight matrix, "
+            f"got {criterion!r}")
     options = {} if options is None else dict(options)
     accepted = record.signature[0] if record.signature is not None else ()
     for reserved in ("criterion", "omega"):
@@ -274,7 +283,8 @@ def _gate_omega(A, B, criterion):
     minimiser of a/(1-w) + b/w, the determinant is minimised over the generalised
     eigenvalues of (A, B), where log det is convex in omega.
     """
-    if isinstance(criterion, str) and criterion == "det":
+    kind, W = parse_criterion(criterion, A.shape[0])
+    if kind == "det":
         from scipy.linalg import eigh
         from scipy.optimize import minimize_scalar
         lam = eigh(A, B, eigvals_only=True)
@@ -285,7 +295,7 @@ def _gate_omega(A, B, criterion):
 
         return float(minimize_scalar(log_det, bounds=(1e-12, 1 - 1e-12), method="bounded",
                                      options={"xatol": 1e-10}).x)
-    W = np.eye(A.shape[0]) if isinstance(criterion, str) else np.asarray(criterion, float)
+    W = np.eye(A.shape[0]) if W is None else W
     a, b = np.sqrt(max(np.sum(W * A), 0.0)), np.sqrt(max(np.sum(W * B), 0.0))
     if a + b == 0:
         return 0.5
@@ -391,7 +401,11 @@ class FusionUpdater(Updater):
             omega = float(self.omega)
             if not 0 < omega < 1:
                 raise ValueError(f"omega must be in (0, 1), got {self.omega!r}")
-        self._rule = _check_rule(self.method, self.criterion, self.omega, self.options)
+        self._rule()
+
+    def _rule(self):
+        """(method name, options for fuse) from the current properties."""
+        return _check_rule(self.method, self.criterion, self.omega, self.options)
 
     def _detection_estimate(self, measurement, measurement_model):
         """Mean and covariance of a Gaussian detection (its covariance, else its noise)."""
@@ -458,7 +472,7 @@ class FusionUpdater(Updater):
             predicted_state.timestamp, cross_covar=predicted_state.covar)
 
     def _innovation_covariance(self, A, B):
-        name, _ = self._rule
+        name, _ = self._rule()
         if name == "naive":
             V = A + B
         else:
@@ -512,9 +526,9 @@ class FusionUpdater(Updater):
         if a.shape != b.shape:
             raise ValueError(
                 f"the detection {a.shape} must be an estimate of the full state {b.shape}")
-        name, options = self._rule
+        name, options = self._rule()
         if options.get("omega") is not None:
-            options = dict(options, omega=float(options["omega"]))
+            options["omega"] = float(options["omega"])
         return fuse([(a, A), (b, B)], method=name, **options)
 
     def update(self, hypothesis, force_symmetric_covariance=False, **kwargs):
@@ -649,8 +663,9 @@ class OptimalCovarianceIntersection(MixtureReducer):
         super().__init__(*args, **kwargs)
         _check_rule(self.method, self.criterion, None, self.options)
 
+    @_ClassOrInstanceMethod
     def merge_result(self, *components, weights=None):
-        """The :class:`~cifilter.FusionResult` of merging the components.
+        """The :class:`~cifilter.FusionResult` of merging the components (class or instance).
 
         Parameters
         ----------
