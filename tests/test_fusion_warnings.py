@@ -35,11 +35,23 @@ def demo_scenario(q=0.5):
     return F, Q, H, np.diag([100.0, 4.0]), np.diag([9.0, 64.0]), np.diag([100.0, 25, 100, 25])
 
 
-def fusing_loop(steps, two_way, method, first_ci=0, **options):
+def ajgl_scenario():
+    """The dynamical example of Ajgl et al. 2014 (eqs. 29-30): A measures x1, B x2.
+
+    ``H`` is a pair (one measurement matrix per filter)."""
+    F, Q = 0.95 * np.eye(2), np.array([[1.0, 0.95], [0.95, 1.0]])
+    H = (np.array([[1.0, 0.0]]), np.array([[0.0, 1.0]]))
+    return F, Q, H, np.eye(1), 3.0 * np.eye(1), 10.0 * np.eye(2)
+
+
+def fusing_loop(steps, two_way, method, first_ci=0, period=1, scenario=demo_scenario,
+                **options):
     """Run the two filters; return the per-step gains and covariances and the exact joint.
 
     ``method`` None: local tracks only. ``first_ci``: the first steps fuse with ``"ci"``
-    (no options), the rest with ``method``.
+    (no options), the rest with ``method``. ``period``: fuse at the steps ``k`` with
+    ``k % period == period - 1`` only. ``scenario``: a function giving
+    ``F, Q, H, R_a, R_b, P0`` (``H`` one matrix, or a pair: one per filter).
 
     Returns a list of dicts with ``K`` (the two Kalman gains), ``G`` (the 2N x 2N map of the
     fusion on the stacked errors, identity if none), ``P_a``, ``P_b`` (the filters' own
@@ -47,14 +59,16 @@ def fusing_loop(steps, two_way, method, first_ci=0, **options):
     step), ``rho`` (the true correlation coefficient bound of the tracks just before the
     fusion) and ``weights`` (A's fusion weights: own track, B's track).
     """
-    F, Q, H, R_a, R_b, P0 = demo_scenario()
+    F, Q, H, R_a, R_b, P0 = scenario()
+    H_a, H_b = H if isinstance(H, tuple) else (H, H)
+    n = F.shape[0]
     filters = []
-    for R in (R_a, R_b):
-        kf = KalmanFilter(dim_x=N, dim_z=2)
-        kf.F, kf.Q, kf.H, kf.R, kf.P = F, Q, H, R, P0.copy()
+    for H_i, R in ((H_a, R_a), (H_b, R_b)):
+        kf = KalmanFilter(dim_x=n, dim_z=H_i.shape[0])
+        kf.F, kf.Q, kf.H, kf.R, kf.P = F, Q, H_i, R, P0.copy()
         filters.append(kf)
     a, b = filters
-    eye, zero = np.eye(N), np.zeros((N, N))
+    eye, zero = np.eye(n), np.zeros((n, n))
     joint = np.block([[P0, zero], [zero, P0]])  # independent priors
     history = []
     for step in range(steps):
@@ -62,13 +76,13 @@ def fusing_loop(steps, two_way, method, first_ci=0, **options):
         joint = F2 @ joint @ F2.T + np.kron(np.ones((2, 2)), Q)  # the common process noise
         for kf in filters:
             kf.predict()
-            kf.update(np.zeros((2, 1)))  # the data do not matter for covariances and gains
-        T = np.block([[eye - a.K @ H, zero], [zero, eye - b.K @ H]])
+            kf.update(np.zeros((kf.dim_z, 1)))  # data do not matter for covariances, gains
+        T = np.block([[eye - a.K @ H_a, zero], [zero, eye - b.K @ H_b]])
         noise = np.block([[a.K @ R_a @ a.K.T, zero], [zero, b.K @ R_b @ b.K.T]])
         joint = T @ joint @ T.T + noise
-        rho = float(correlation_bound(joint[:N, :N], joint[N:, N:], joint[:N, N:]))
-        if method is None:  # local tracks only
-            history.append(dict(K=(a.K.copy(), b.K.copy()), T=T, G=np.eye(2 * N),
+        rho = float(correlation_bound(joint[:n, :n], joint[n:, n:], joint[:n, n:]))
+        if method is None or step % period != period - 1:  # local tracks only
+            history.append(dict(K=(a.K.copy(), b.K.copy()), T=T, G=np.eye(2 * n),
                                 P_a=a.P.copy(), P_b=b.P.copy(), joint=joint, rho=rho,
                                 weights=None))
             continue
@@ -178,3 +192,89 @@ def test_horizon_weights_in_a_loop_that_fuses_every_step_discard_the_own_track(t
     # Both are CI bounds, so both stay conservative: the harm is a worse filter.
     for last in (last_now, last_later):
         assert np.linalg.eigvalsh(last["P_a"] - last["joint"][:N, :N]).min() > -1e-9
+
+
+def simulated_filters_nees(two_way, first_ci, runs=40, steps=100, rng=0, **pci_options):
+    """Mean NEES of filter A over steps 21-100 with real filters on simulated data.
+
+    The same loop as :func:`fusing_loop` (demo scenario), but with measurements: what a user
+    running the filters would see. Returns the mean and a rough standard error.
+    """
+    F, Q, H, R_a, R_b, P0 = demo_scenario()
+    g = np.random.default_rng(rng)
+    L_q, L_p = np.linalg.cholesky(Q), np.linalg.cholesky(P0)
+    nees = []
+    for _ in range(runs):
+        state = np.array([0.0, 10.0, 0.0, 5.0])
+        filters = []
+        for R in (R_a, R_b):
+            kf = KalmanFilter(dim_x=N, dim_z=2)
+            kf.F, kf.Q, kf.H, kf.R, kf.P = F, Q, H, R, P0.copy()
+            kf.x = (state + L_p @ g.standard_normal(N)).reshape(N, 1)
+            filters.append(kf)
+        a, b = filters
+        for step in range(steps):
+            state = F @ state + L_q @ g.standard_normal(N)
+            for kf in filters:
+                z = H @ state + np.sqrt(np.diag(kf.R)) * g.standard_normal(2)
+                kf.predict()
+                kf.update(z.reshape(2, 1))
+            method, options = ("ci", {}) if step < first_ci else ("pci", pci_options)
+            estimate_a, estimate_b = (a.x.copy(), a.P.copy()), (b.x.copy(), b.P.copy())
+            a.fuse(estimate_b, method=method, **options)
+            if two_way:
+                b.fuse(estimate_a, method=method, **options)
+            if step >= 20:
+                e = a.x[:, 0] - state
+                nees.append(e @ np.linalg.solve(a.P, e))
+    nees = np.asarray(nees)
+    return float(nees.mean()), float(nees.std() / np.sqrt(4 * runs))
+
+
+def _print_tables():
+    """The numbers of docs/methods/horizon.rst and docs/methods/pci.rst (about 2 minutes)."""
+    print("horizon= in a loop that fuses every step (step 40, trace criterion)")
+    for name, scenario in (("demo", demo_scenario), ("Ajgl et al.", ajgl_scenario)):
+        n = scenario()[0].shape[0]
+        local = fusing_loop(40, False, None, scenario=scenario)[-1]
+        print(f"  {name}, no fusion: MSE {np.trace(local['joint'][:n, :n]):.3f}")
+        for two_way in (False, True):
+            for horizon in (None, 1, 3, 10):
+                options = {} if horizon is None else dict(horizon=horizon)
+                last = fusing_loop(40, two_way, "ci", scenario=scenario, **options)[-1]
+                print(f"  {name}, {'two' if two_way else 'one'}-way, horizon={horizon}: "
+                      f"omega_A {last['weights'][0]:.3f}  MSE "
+                      f"{np.trace(last['joint'][:n, :n]):.3f}  tr P {np.trace(last['P_a']):.3f}")
+    print("fusing every 10 steps: horizon=9 against the instantaneous weights (steps 49-58)")
+    for name, scenario in (("demo", demo_scenario), ("Ajgl et al.", ajgl_scenario)):
+        n = scenario()[0].shape[0]
+        for two_way in (False, True):
+            for horizon in (None, 9):
+                options = {} if horizon is None else dict(horizon=horizon)
+                cycle = fusing_loop(59, two_way, "ci", period=10, scenario=scenario,
+                                    **options)[49:]
+                first, last = cycle[0], cycle[-1]
+                print(f"  {name}, {'two' if two_way else 'one'}-way, horizon={horizon}: "
+                      f"omega_A {first['weights'][0]:.3f}  after the fusion MSE "
+                      f"{np.trace(first['joint'][:n, :n]):.3f} tr P {np.trace(first['P_a']):.3f}"
+                      f"  9 steps later MSE {np.trace(last['joint'][:n, :n]):.3f} "
+                      f"tr P {np.trace(last['P_a']):.3f}")
+    print("pci with rho=0.5 after 10 steps of ci (step 100; NEES 4 = consistent)")
+    local = fusing_loop(100, False, None)[-1]
+    print(f"  local tracks: rho {local['rho']:.3f}  MSE {np.trace(local['joint'][:N, :N]):.2f}")
+    for two_way in (False, True):
+        for label, method, first_ci, options in (("ci", "ci", 0, {}),
+                                                 ("ci then pci", "pci", 10, dict(rho=0.5))):
+            last = fusing_loop(100, two_way, method, first_ci=first_ci, **options)[-1]
+            C_a = last["joint"][:N, :N]
+            if method == "ci":
+                mean, se = simulated_filters_nees(two_way, first_ci=100)
+            else:
+                mean, se = simulated_filters_nees(two_way, first_ci=10, **options)
+            print(f"  {'two' if two_way else 'one'}-way {label}: rho {last['rho']:.3f}  NEES "
+                  f"exact {expected_nees(last['P_a'], C_a):.2f} simulated {mean:.2f} +- "
+                  f"{se:.2f}  tr P {np.trace(last['P_a']):.2f}  MSE {np.trace(C_a):.2f}")
+
+
+if __name__ == "__main__":
+    _print_tables()
