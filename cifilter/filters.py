@@ -9,6 +9,8 @@ filterpy, so what filterpy 2.0 changed (``KalmanFilter.M`` of shape (dim_x, dim_
 is there exactly when it is in filterpy; ``fuse`` uses only what both versions share
 (``x``, ``P``, ``x_post``, ``P_post`` and, for ``horizon=``, ``F``, ``Q``, ``H``, ``R``).
 Until ``fuse`` is called a filter gives bit for bit the results of filterpy's class.
+(filterpy 1.4.5's ``KalmanFilter.mahalanobis``, and so its ``repr`` and ``Saver``, raise
+``TypeError`` with recent numpy, seen with 2.4.6, for filterpy's own class alike.)
 """
 
 import math
