@@ -2,6 +2,15 @@
 
 ``cifilter.KalmanFilter`` is ``filterpy.kalman.KalmanFilter`` with one more method,
 :meth:`FusionMixin.fuse`; constructors, ``predict`` and ``update`` are filterpy's own.
+
+Supported: filterpy 1.4.5 and 2.x. The classes inherit everything from the installed
+filterpy, so what filterpy 2.0 changed (``KalmanFilter.M`` of shape (dim_x, dim_z),
+``UnscentedKalmanFilter(..., state_add=)``, ``Saver.to_array(flatten=)``, ``stats.NEES``)
+is there exactly when it is in filterpy; ``fuse`` uses only what both versions share
+(``x``, ``P``, ``x_post``, ``P_post`` and, for ``horizon=``, ``F``, ``Q``, ``H``, ``R``).
+Until ``fuse`` is called a filter gives bit for bit the results of filterpy's class.
+(filterpy 1.4.5's ``KalmanFilter.mahalanobis``, and so its ``repr`` and ``Saver``, raise
+``TypeError`` with recent numpy, seen with 2.4.6, for filterpy's own class alike.)
 """
 
 import math
@@ -312,7 +321,8 @@ class UnscentedKalmanFilter(FusionMixin, _FilterpyUKF):
         Sigma point generator, e.g. ``filterpy.kalman.MerweScaledSigmaPoints``.
     sqrt_fn, x_mean_fn, z_mean_fn, residual_x, residual_z, state_add : callable, optional
         As in filterpy: matrix square root, state and measurement means, residuals and
-        state addition (for angles and other non-Euclidean states).
+        state addition (for angles and other non-Euclidean states; ``state_add`` exists
+        from filterpy 2.0 on).
 
     Examples
     --------
