@@ -24,6 +24,7 @@ from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
 from .ei import ellipsoidal_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
 from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
+from .ici import inverse_covariance_intersection
 from .optimal import naive_fusion, optimal_fusion
 from .pci import partial_ci
 from .pcei import pc_ellipsoidal_intersection
@@ -49,6 +50,7 @@ __all__ = [
     "fuse",
     "get_method",
     "horizon_study",
+    "inverse_covariance_intersection",
     "mahalanobis_sq",
     "naive_fusion",
     "optimal_fusion",
