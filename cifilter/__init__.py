@@ -21,6 +21,7 @@ from . import _rules  # noqa: F401  (registers the built-in rules, in its explic
 from ._linalg import IllConditionedError, mahalanobis_sq
 from .bayes import bayesian_fusion, sample_joint_covariances
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
+from .cross import cross_covariance_fusion
 from .ei import ellipsoidal_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
 from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
@@ -46,6 +47,7 @@ __all__ = [
     "bayesian_fusion",
     "ci_weights",
     "covariance_intersection",
+    "cross_covariance_fusion",
     "ellipsoidal_intersection",
     "fuse",
     "get_method",
