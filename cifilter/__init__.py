@@ -31,6 +31,7 @@ from .pci import partial_ci
 from .pcei import pc_ellipsoidal_intersection
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
+from .split_ci import split_covariance_intersection
 
 __version__ = "0.1.0"
 
@@ -62,5 +63,6 @@ __all__ = [
     "propagate_bound",
     "register_method",
     "sample_joint_covariances",
+    "split_covariance_intersection",
     "steady_state_covariance",
 ]

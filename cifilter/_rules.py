@@ -6,7 +6,7 @@ validated estimates, guarantee, truth hook); rules that can choose their weights
 bound after future filtering get their ``horizon`` hook from :mod:`cifilter.horizon`.
 """
 
-from . import bayes, ci, cross, ei, ici, optimal, pcei, pci
+from . import bayes, ci, cross, ei, ici, optimal, pcei, pci, split_ci
 from .horizon import ci_horizon_options, pci_horizon_options
 from .registry import register_method
 
@@ -19,6 +19,7 @@ BUILT_IN = (
     pcei.REGISTRATION,
     bayes.REGISTRATION,
     ici.REGISTRATION,
+    split_ci.REGISTRATION,
     cross.REGISTRATION,
 )
 
