@@ -32,6 +32,7 @@ from .pcei import pc_ellipsoidal_intersection
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
 from .split_ci import split_covariance_intersection
+from .split_filter import SplitCIKalmanFilter
 
 __version__ = "0.1.0"
 
@@ -43,6 +44,7 @@ __all__ = [
     "FusionResult",
     "IllConditionedError",
     "KalmanFilter",
+    "SplitCIKalmanFilter",
     "UnscentedKalmanFilter",
     "available_methods",
     "bayesian_fusion",
