@@ -67,37 +67,65 @@ def _v_factors(parts, omega, failures="nan"):
     return lower_inverse_stack(L1), lower_inverse_stack(L2)
 
 
-def split_pair_derivative(parts, D, H, omega, kind, W):
-    """``(f, f')`` of the split-CI criterion at omega (size,); NaN where undefined."""
+def _sym(A):
+    return A + A.swapaxes(-1, -2)
+
+
+def split_pair_derivative(parts, D, H, omega, kind, W, curvature=False):
+    """``(f, f')`` of the split-CI criterion at omega (size,), and ``f''`` with
+    ``curvature``; NaN where undefined.
+
+    ``f''`` (for Newton's steps only) from ``d2Q = -sym(V_1^-1 P1_ind V_1^-1 P1_dep V_1^-1)
+    - H^T sym(V_2^-1 P2_ind V_2^-1 P2_dep V_2^-1) H`` (``sym(A) = A + A^T``):
+    ``2 tr(W P dQ P dQ P) - tr(W P d2Q P)`` or ``tr(P dQ P dQ) - tr(P d2Q)``.
+    """
     L1i, L2i = _v_factors(parts, omega)
     _, R_inv, P = _information((L1i, L2i), H, omega)
     V1i = L1i.swapaxes(-1, -2) @ L1i
     V2i = L2i.swapaxes(-1, -2) @ L2i
     T1 = V1i @ D[0]  # V_1^-1 D_1
     T2 = H.swapaxes(-1, -2) @ (V2i @ D[1])  # H^T V_2^-1 D_2
+    if curvature:
+        (Pi1, _), (Pi2, _) = parts
+        Ht = H.swapaxes(-1, -2)
+        dQ = T1 @ T1.swapaxes(-1, -2) - T2 @ T2.swapaxes(-1, -2)
+        d2Q = -(_sym(V1i @ Pi1 @ T1 @ T1.swapaxes(-1, -2))
+                + Ht @ _sym(V2i @ Pi2 @ V2i @ D[1] @ D[1].swapaxes(-1, -2) @ V2i) @ H)
+        PdQ = P @ dQ
+        if kind == "det":
+            second = (np.einsum("...ij,...ji->...", PdQ, PdQ)
+                      - np.einsum("...ij,...ji->...", P, d2Q))
+        else:
+            Wm = np.broadcast_to(np.eye(P.shape[-1]), P.shape) if W is None else W
+            second = (2.0 * np.einsum("...ij,...jk,...kl,...li->...", Wm, PdQ, PdQ, P)
+                      - np.einsum("...ij,...jk,...kl,...li->...", Wm, P, d2Q, P))
     if kind == "det":
         f = 2.0 * np.log(np.abs(np.diagonal(R_inv, axis1=-2, axis2=-1))).sum(axis=-1)
         Lp_T = R_inv  # P = R_inv^T R_inv: trace(P T T^T) = ||R_inv T||^2
-        return f, squared_norms(Lp_T @ T2) - squared_norms(Lp_T @ T1)
-    M1, M2 = P @ T1, P @ T2
-    if kind == "trace":
-        f = np.trace(P, axis1=-2, axis2=-1)
-        return f, squared_norms(M2) - squared_norms(M1)
-    f = np.einsum("...ij,...ji->...", W, P)
-    return f, (np.einsum("...ij,...ik,...jk->...", W, M2, M2)
-               - np.einsum("...ij,...ik,...jk->...", W, M1, M1))
+        slope = squared_norms(Lp_T @ T2) - squared_norms(Lp_T @ T1)
+    else:
+        M1, M2 = P @ T1, P @ T2
+        if kind == "trace":
+            f = np.trace(P, axis1=-2, axis2=-1)
+            slope = squared_norms(M2) - squared_norms(M1)
+        else:
+            f = np.einsum("...ij,...ji->...", W, P)
+            slope = (np.einsum("...ij,...ik,...jk->...", W, M2, M2)
+                     - np.einsum("...ij,...ik,...jk->...", W, M1, M1))
+    return (f, slope, second) if curvature else (f, slope)
 
 
 def _optimal_omega(parts, D, H, kind, W, size, n):
     def derivatives(omega, index):
         sub = tuple((a[index], b[index]) for a, b in parts)
-        _, slope = split_pair_derivative(sub, (D[0][index], D[1][index]), H[index], omega,
-                                         kind, None if W is None else W[index])
+        _, slope, second = split_pair_derivative(
+            sub, (D[0][index], D[1][index]), H[index], omega, kind,
+            None if W is None else W[index], curvature=True)
         # Where V_i is singular at an end (a singular dependent part) the criterion is
         # unbounded there: the slope points away from that end.
         bad = ~np.isfinite(slope)
         slope = np.where(bad, np.where(omega >= 0.5, np.inf, -np.inf), slope)
-        return slope, np.full(slope.shape, np.nan)  # no curvature: safeguarded bisection
+        return slope, np.where(bad | ~np.isfinite(second), np.inf, second)
 
     (Pi1, Pd1), _ = parts
     if kind == "det":
