@@ -97,7 +97,9 @@ def inverse_covariance_intersection(xs, Ps, criterion="trace", omega=None):
     and is assembled from factors without squaring a condition number (ICI as the
     information fusion of the inflated covariances ``Ya = (1 - omega) Pa + omega Pa Pb^-1
     Pa`` and ``Yb = omega Pb + (1 - omega) Pb Pa^-1 Pb`` with weights ``(1 - omega,
-    omega)``). Derivation: ``docs/methods/ici.rst``.
+    omega)``). Omega is found by a safeguarded Newton iteration, in the simultaneously
+    diagonalised form where that is accurate and from the factors elsewhere, and
+    certified by the convexity gap. Derivation: ``docs/methods/ici.rst``.
 
     *N > 2.* The fused estimate of a and b and a third estimate c are not in the
     common-information model with each other, so the sequential result carries no proved
