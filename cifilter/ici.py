@@ -136,7 +136,8 @@ def _pair_result(x, P, L, kind, W, omega):
     pair = inverse_ci_pair(x, P, L)
     info = {}
     if omega is None:
-        w, iterations, gap = optimal_inverse_omega(pair, kind, W)
+        Wf = None if W is None else np.broadcast_to(W, batch + (n, n)).reshape(-1, n, n)
+        w, iterations, gap = optimal_inverse_omega(pair, kind, Wf)
         info.update(rule="optimal", iterations=iterations.reshape(batch),
                     gap=gap.reshape(batch), converged=(gap <= CERTIFIED).reshape(batch))
     else:

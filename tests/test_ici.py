@@ -419,3 +419,15 @@ def test_property_bound_in_worst_common_direction(Ps):
     Pa, Pb = Ps
     r = inverse_covariance_intersection([np.zeros(2)] * 2, Ps)
     assert worst_common_excess(r.P, r.gains[0], r.gains[1], Pa, Pb, rounds=2) <= 1e-9
+
+
+def test_weight_matrices_per_problem_of_a_batch():
+    Ps = np.stack([[[random_spd(3, 200 + 6 * i + 2 * j), random_spd(3, 201 + 6 * i + 2 * j)]
+                    for j in range(3)] for i in range(2)])
+    W = np.stack([[np.diag([1.0, float(i + j), 0.0]) for j in range(3)] for i in range(2)])
+    r = inverse_covariance_intersection(np.zeros((2, 3, 2, 3)), Ps, criterion=W)
+    for i in range(2):
+        for j in range(3):
+            one = inverse_covariance_intersection([np.zeros(3)] * 2, list(Ps[i, j]),
+                                                  criterion=W[i, j])
+            np.testing.assert_allclose(r.P[i, j], one.P, rtol=1e-10)
