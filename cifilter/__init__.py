@@ -13,6 +13,11 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
   (``"pcei"``), which estimate the common information (Sijs & Lazar; Naveen & Taylor);
 * :func:`bayesian_fusion` (``"bayes"``), the Monte Carlo MMSE fusion under a Wishart prior
   (Weng & Djurić), and its sampler :func:`sample_joint_covariances`;
+* :func:`inverse_covariance_intersection` (``"ici"``), the bound under unknown common
+  information (Noack et al. 2017); :func:`split_covariance_intersection` (``"split-ci"``)
+  and :class:`SplitCIKalmanFilter` (Julier & Uhlmann; Li, Nashashibi & Yang);
+  :func:`cross_covariance_fusion` (``"cross"``), Bar-Shalom-Campo with an assumed
+  correlation (MATLAB's ``fusexcov``);
 * every rule is reachable through :func:`fuse` and the registry
   (:func:`register_method`, :func:`available_methods`).
 """
