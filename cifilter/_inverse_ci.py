@@ -50,7 +50,7 @@ from ._information import (
     squared_norms,
     weighted_fusion,
 )
-from ._optimize import interval_gap, minimize_convex_interval
+from ._optimize import interval_gap, minimize_convex_interval, minimize_convex_scalar
 
 __all__ = ["InversePair", "inverse_ci_derivatives", "inverse_ci_fusion", "inverse_ci_pair",
            "optimal_inverse_omega"]
@@ -114,6 +114,10 @@ def inverse_ci_fusion(pair, omega):
     Raises IllConditionedError where the fused information is numerically singular.
     """
     L_Y, L_Y_inv, weights, factors = _information_at(pair, omega)
+    if len(omega) == 1:  # one problem: the single-problem path of the same assembly
+        fused = weighted_fusion(pair.x[0], L_Y[0], weights[0], L_Y_inv[0],
+                                type(factors)(*(f[0] for f in factors)))
+        return fused.x[None], fused.P[None], fused.gains[None]
     fused = weighted_fusion(pair.x, L_Y, weights, L_Y_inv, factors)
     return fused.x, fused.P, fused.gains
 
@@ -218,7 +222,17 @@ def _diagonalised(pair, kind, W):
 
         scale = (c * (1.0 + lam)).sum(axis=-1)
     with np.errstate(all="ignore"):
-        omega, iterations, _ = minimize_convex_interval(derivatives, size, scale=scale)
+        if size == 1:  # one problem: the same iteration in Python floats
+            only = np.zeros(1, dtype=int)
+
+            def derivative(w):
+                first, second = derivatives(np.array([w]), only)
+                return float(first[0]), float(second[0])
+
+            w, count, _ = minimize_convex_scalar(derivative, scale=float(scale[0]))
+            omega, iterations = np.array([w]), np.array([count])
+        else:
+            omega, iterations, _ = minimize_convex_interval(derivatives, size, scale=scale)
         slope, _ = derivatives(omega, np.arange(size))
         gap = interval_gap(omega, slope)
         if kind != "det":
