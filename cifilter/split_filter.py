@@ -240,7 +240,7 @@ class SplitCIKalmanFilter(KalmanFilter):
         self._set_parts(P_ind, P_dep)
         self.P_post = self.P.copy()
 
-    def fuse(self, other, method="split-ci", *, criterion="det", H=None, **options):
+    def fuse(self, other, method="split-ci", *, criterion=None, H=None, **options):
         """Fuse with other estimates by Split Covariance Intersection (or another rule).
 
         With ``method="split-ci"`` (default) the filter's ``(x, P_ind, P_dep)`` is fused
@@ -258,7 +258,8 @@ class SplitCIKalmanFilter(KalmanFilter):
             ``"split-ci"`` (default), or any registered rule: that rule is then applied
             by :meth:`cifilter.FusionMixin.fuse` and the fused ``P`` is wholly dependent.
         criterion : {"det", "trace"} or array_like, optional
-            Split CI's criterion for omega (default ``"det"``).
+            The criterion for omega: split CI's default is ``"det"``; with another rule,
+            that rule's own default unless given.
         H : array_like, shape (m, dim_x), optional
             The single other estimate observes ``H x`` (a partial estimate of dimension
             m); its parts are then m x m.
@@ -309,7 +310,8 @@ class SplitCIKalmanFilter(KalmanFilter):
         xs = [x_self] + [item[0] for item in items]
         result = split_covariance_intersection(
             xs, [self.P_ind] + [item[1] for item in items],
-            [self.P_dep] + [item[2] for item in items], H=H, criterion=criterion)
+            [self.P_dep] + [item[2] for item in items], H=H,
+            criterion="det" if criterion is None else criterion)
         x = np.asarray(result.x)
         if x.size != math.prod(x_shape) or result.P.shape != (n, n):
             raise ValueError("a filter fuses single (unbatched) estimates only")
@@ -325,6 +327,6 @@ class SplitCIKalmanFilter(KalmanFilter):
 
 def _fuse_with_rule(filt, other, method, criterion, options):
     """:meth:`cifilter.FusionMixin.fuse` on a split filter (criterion passed if given)."""
-    if criterion != "det":
+    if criterion is not None:
         options = dict(options, criterion=criterion)
     return KalmanFilter.fuse(filt, other, method, **options)

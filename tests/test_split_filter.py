@@ -89,8 +89,11 @@ def test_fuse_with_triples_pairs_partial_estimates_and_other_rules():
     # dependent part (P_dep / omega): split CI pays for the unknown correlation there
     assert kf.P[0, 0] < 0.5 and kf.P[1, 1] > 2.0
     # another rule: the fused P is wholly dependent afterwards
-    kf.fuse((np.ones(2), np.eye(2)), method="ci")
+    r = kf.fuse((np.ones(2), np.eye(2)), method="ci")
+    assert r.info["criterion"] == "trace"  # CI's own default
     np.testing.assert_array_equal(kf.P_ind, np.zeros((2, 2)))
+    r = kf.fuse((np.ones(2), np.eye(2)), method="ci", criterion="det")
+    assert r.info["criterion"] == "det"
     np.testing.assert_array_equal(kf.P_dep, kf.P)
 
 
