@@ -13,6 +13,11 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
   (``"pcei"``), which estimate the common information (Sijs & Lazar; Naveen & Taylor);
 * :func:`bayesian_fusion` (``"bayes"``), the Monte Carlo MMSE fusion under a Wishart prior
   (Weng & Djurić), and its sampler :func:`sample_joint_covariances`;
+* :func:`inverse_covariance_intersection` (``"ici"``), the bound under unknown common
+  information (Noack et al. 2017); :func:`split_covariance_intersection` (``"split-ci"``)
+  and :class:`SplitCIKalmanFilter` (Julier & Uhlmann; Li, Nashashibi & Yang);
+  :func:`cross_covariance_fusion` (``"cross"``), Bar-Shalom-Campo with an assumed
+  correlation (MATLAB's ``fusexcov``);
 * every rule is reachable through :func:`fuse` and the registry
   (:func:`register_method`, :func:`available_methods`).
 """
@@ -21,14 +26,18 @@ from . import _rules  # noqa: F401  (registers the built-in rules, in its explic
 from ._linalg import IllConditionedError, mahalanobis_sq
 from .bayes import bayesian_fusion, sample_joint_covariances
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
+from .cross import cross_covariance_fusion
 from .ei import ellipsoidal_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
 from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
+from .ici import inverse_covariance_intersection
 from .optimal import naive_fusion, optimal_fusion
 from .pci import partial_ci
 from .pcei import pc_ellipsoidal_intersection
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
+from .split_ci import split_covariance_intersection
+from .split_filter import SplitCIKalmanFilter
 
 __version__ = "0.1.0"
 
@@ -40,15 +49,18 @@ __all__ = [
     "FusionResult",
     "IllConditionedError",
     "KalmanFilter",
+    "SplitCIKalmanFilter",
     "UnscentedKalmanFilter",
     "available_methods",
     "bayesian_fusion",
     "ci_weights",
     "covariance_intersection",
+    "cross_covariance_fusion",
     "ellipsoidal_intersection",
     "fuse",
     "get_method",
     "horizon_study",
+    "inverse_covariance_intersection",
     "mahalanobis_sq",
     "naive_fusion",
     "optimal_fusion",
@@ -58,5 +70,6 @@ __all__ = [
     "propagate_bound",
     "register_method",
     "sample_joint_covariances",
+    "split_covariance_intersection",
     "steady_state_covariance",
 ]
