@@ -377,9 +377,9 @@ def dask_client(workers=None, scheduler=None):
     """The Dask client for ``--workers N`` or ``--scheduler ADDRESS``, or None for neither.
 
     ``workers`` starts a :class:`distributed.LocalCluster` of that many worker processes
-    with one thread each (numpy already uses the cores within a chunk, and one thread per
-    process keeps chunks from competing for the GIL), without a dashboard; it is shut down
-    on exit. ``scheduler`` connects to an existing cluster (left running on exit).
+    with one thread each (a chunk is numpy code that holds the GIL much of the time, so
+    processes rather than threads share the cores; the dashboard gets a free port); it is
+    shut down on exit. ``scheduler`` connects to an existing cluster (left running on exit).
 
     Parameters
     ----------
