@@ -80,9 +80,9 @@ def adjacency_matrix(graph, nodes=None):
     ----------
     graph : ndarray or sequence of pairs or graph
         An ``(m, m)`` numpy array, the adjacency matrix (non-zero entries are links; it
-        must be symmetric: links are two-way), a sequence of ``(i, j)`` edges between nodes ``0..m-1``, or a
-        ``networkx`` graph (any object with ``nodes`` and ``edges``; networkx itself is not
-        needed). Self-loops are ignored.
+        must be symmetric: links are two-way), a sequence of ``(i, j)`` edges between
+        nodes ``0..m-1``, or a ``networkx`` graph (any object with ``nodes`` and
+        ``edges``; networkx itself is not needed). Self-loops are ignored.
     nodes : int, optional
         Number of nodes for an edge list (default: one more than the largest index).
 
