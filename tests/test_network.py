@@ -33,8 +33,8 @@ def test_adjacency_from_matrix_edges_and_a_graph_object():
     assert adjacency_matrix([(0, 1), (1, 2)]).tolist() == matrix.tolist()
 
     class Graph:  # what networkx offers: nodes and edges (networkx itself not needed)
-        nodes = ["a", "b", "c"]
-        edges = [("a", "b"), ("b", "c")]
+        nodes = ("a", "b", "c")
+        edges = (("a", "b"), ("b", "c"))
 
     assert adjacency_matrix(Graph()).tolist() == matrix.tolist()
     assert adjacency_matrix([(0, 1)], nodes=3).sum(axis=1).tolist() == [1, 1, 0]
