@@ -10,7 +10,7 @@ the two-track demo. :meth:`Scenario.from_filters` builds a scenario from the use
 ``cifilter.KalmanFilter`` objects and graph.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
@@ -178,7 +178,6 @@ class Scenario:
     positions: np.ndarray = None
     description: str = ""
     position_indices: tuple = POSITION
-    _checked: bool = field(default=False, repr=False, compare=False)
 
     def __post_init__(self):
         F = as_float_array(self.F, "F")
