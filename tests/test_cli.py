@@ -114,3 +114,18 @@ def test_unwritable_plot_path_fails_before_the_work_without_traceback(tmp_path):
     assert "Traceback" not in completed.stderr
     assert completed.stderr.count("\n") == 1 and "argument --plot" in completed.stderr
     assert completed.stdout == ""  # nothing ran
+
+
+@pytest.mark.slow
+def test_network_demo_on_two_dask_workers_gives_the_same_table():
+    from cifilter import montecarlo
+    from cifilter.demo import run_network_demo
+
+    here = run_network_demo(seed=4, runs=10, steps=8, methods=["ci", "naive"],
+                            out=io.StringIO())
+    with montecarlo.dask_client(workers=2) as client:
+        there = run_network_demo(seed=4, runs=10, steps=8, methods=["ci", "naive"],
+                                 out=io.StringIO(), client=client)
+    strip = [[{k: v for k, v in row.items() if k != "us_per_fusion"} for row in rows]
+             for rows in (here, there)]
+    assert strip[0] == strip[1]
