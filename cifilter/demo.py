@@ -622,16 +622,20 @@ def run_network_demo(seed=0, runs=None, steps=None, methods=None, plot=None, out
 
 
 def run_demo(seed=0, runs=None, steps=None, methods=None, plot=None, out=None, *,
-             scenario="naveen-taylor", **network_options):
-    """Run the demo: the network with feedback (default) or ``scenario="two-tracks"``.
+             scenario="two-tracks", **network_options):
+    """Run a demo: the two tracks (the default of this function) or a network.
+
+    ``python -m cifilter demo`` runs the network (:func:`run_network_demo`,
+    ``scenario="naveen-taylor"``); this function keeps the two-track default of earlier
+    versions so that code calling ``run_demo(...)`` gets the rows it got before.
 
     Parameters
     ----------
     seed : int, optional
         Seed (same seed, same table).
     runs, steps : int, optional
-        Monte Carlo runs and steps per run (default 10 x 40 for a network, 20 x 100 for
-        the two tracks).
+        Monte Carlo runs and steps per run (default 20 x 100 for the two tracks, 10 x 40
+        for a network).
     methods : sequence of str, optional
         Methods to run; default every registered one.
     plot : str or path, optional
@@ -639,8 +643,8 @@ def run_demo(seed=0, runs=None, steps=None, methods=None, plot=None, out=None, *
     out : file, optional
         Where to print (default standard output).
     scenario : str or Scenario, optional
-        ``"two-tracks"`` for :func:`run_two_tracks`, else a network scenario for
-        :func:`run_network_demo` (default ``"naveen-taylor"``).
+        ``"two-tracks"`` (default) for :func:`run_two_tracks`, else a network scenario for
+        :func:`run_network_demo` (e.g. ``"naveen-taylor"``).
     **network_options
         Further options of :func:`run_network_demo`.
 
@@ -652,16 +656,19 @@ def run_demo(seed=0, runs=None, steps=None, methods=None, plot=None, out=None, *
     Raises
     ------
     ValueError
-        Unknown method or scenario.
+        Unknown method or scenario, or network options with the two tracks.
 
     Examples
     --------
     >>> import io
     >>> from cifilter.demo import run_demo
-    >>> rows = run_demo(runs=2, steps=10, methods=["ci"], scenario="two-tracks",
-    ...                 out=io.StringIO())
+    >>> rows = run_demo(runs=2, steps=10, methods=["ci"], out=io.StringIO())
     >>> [row["method"] for row in rows]
     ['local A', 'local B', 'ci']
+    >>> rows = run_demo(runs=2, steps=5, methods=["ci"], out=io.StringIO(),
+    ...                 scenario="naveen-taylor")
+    >>> [row["method"] for row in rows]
+    ['local', 'centralised', 'ci']
     """
     if scenario == "two-tracks":
         if network_options:

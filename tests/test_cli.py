@@ -8,7 +8,7 @@ import pytest
 
 from cifilter import available_methods
 from cifilter.cli import main
-from cifilter.demo import run_demo, run_two_tracks
+from cifilter.demo import run_demo, run_network_demo, run_two_tracks
 
 
 def _cli(*args, timeout=300):
@@ -40,13 +40,13 @@ def test_two_track_demo_runs_every_registered_method_and_writes_the_figures(tmp_
 
 
 def test_demo_is_repeatable_with_a_seed():
-    first = run_demo(seed=7, runs=2, steps=15, out=io.StringIO(), scenario="two-tracks")
+    first = run_demo(seed=7, runs=2, steps=15, out=io.StringIO())  # the two tracks
     second = run_demo(seed=7, runs=2, steps=15, out=io.StringIO(), scenario="two-tracks")
-    third = run_demo(seed=8, runs=2, steps=15, out=io.StringIO(), scenario="two-tracks")
+    third = run_demo(seed=8, runs=2, steps=15, out=io.StringIO())
     strip = [{k: v for k, v in row.items() if k != "time"} for row in first]
     assert strip == [{k: v for k, v in row.items() if k != "time"} for row in second]
     assert strip != [{k: v for k, v in row.items() if k != "time"} for row in third]
-    network = [run_demo(seed=seed, runs=3, steps=6, methods=["ci"], out=io.StringIO())
+    network = [run_network_demo(seed=seed, runs=3, steps=6, methods=["ci"], out=io.StringIO())
                for seed in (1, 1, 2)]
     strip = [[{k: v for k, v in row.items() if k != "us_per_fusion"} for row in rows]
              for rows in network]
@@ -64,7 +64,7 @@ def test_two_track_scores_tell_the_known_story():
 
 
 def test_network_demo_tells_the_data_incest_story():
-    rows = {row["method"]: row for row in run_demo(
+    rows = {row["method"]: row for row in run_network_demo(
         seed=0, runs=6, steps=25, methods=["ci", "naive"], out=io.StringIO())}
     assert rows["naive"]["verdict"] == "overconfident"
     assert rows["ci"]["anees"] < rows["ci"]["upper"]
@@ -82,7 +82,7 @@ def test_unknown_demo_method_is_an_error():
     with pytest.raises(ValueError, match="unknown fusion method"):
         run_demo(methods=["nope"], out=io.StringIO())
     with pytest.raises(ValueError, match="unknown fusion method"):
-        run_demo(methods=["nope"], out=io.StringIO(), scenario="two-tracks")
+        run_network_demo(methods=["nope"], out=io.StringIO())
 
 
 @pytest.mark.parametrize("arguments, message", [
