@@ -206,10 +206,16 @@ def test_naive_fusion_is_overconfident_under_feedback_only():
     assert without["naive"]["anees"] < with_feedback["naive"]["anees"] / 10
 
 
-def test_optimal_fusion_with_the_propagated_joint_is_consistent_under_feedback():
+@pytest.mark.parametrize("config", [dict(sequential=True),
+                                    dict(sequential=False, loss=0.3),
+                                    dict(sequential=False, delay=True, period=2)])
+def test_optimal_fusion_with_the_propagated_joint_is_consistent_under_feedback(config):
+    """The joint covariance the simulation carries (common process noise, gains, losses,
+    delayed messages) is the true one: the optimal fusion told it is consistent."""
     rows = {row["method"]: row for row in compare(naveen_taylor(), ["optimal"], runs=10,
-                                                  steps=30, rng=8, sequential=True)}
+                                                  steps=30, rng=8, **config)}
     assert rows["optimal"]["verdict"] == "consistent"
+    assert rows["optimal"]["inside"] > 0.85
     assert rows["optimal"]["rmse"] < rows["local"]["rmse"]
 
 
