@@ -452,6 +452,17 @@ def format_network_table(rows):
     return "\n".join(lines)
 
 
+def _plain_log_ticks(ax):
+    """Tick labels 2, 5, 10 rather than 2x10^0 on a logarithmic axis."""
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    plain = FuncFormatter(lambda value, _: f"{value:g}")
+    ax.yaxis.set_major_formatter(plain)
+    low, high = ax.get_ylim()
+    # label the minor ticks (2, 3, 5, ...) only when the axis spans little more than a decade
+    ax.yaxis.set_minor_formatter(plain if high < 30 * low else NullFormatter())
+
+
 def _plot_network(results, rows, scenario, directory):
     """nees.png (ANEES against time per rule with the chi-square band), rmse.png and
     network.png (the graph with every node's error ellipses, one panel per rule)."""
@@ -474,6 +485,7 @@ def _plot_network(results, rows, scenario, directory):
         ax.plot([], [], lw=0.6, color="C0", label="ANEES of each node")
         ax.set(title=name, xlabel="step", ylabel="ANEES", yscale="log")
         ax.legend(fontsize="x-small", loc="best")
+        _plain_log_ticks(ax)
     fig.suptitle(f"{scenario.name}: ANEES over {runs} runs against time; inside the band "
                  "is consistent, below conservative, above overconfident")
     paths.append(directory / "nees.png")
@@ -487,6 +499,7 @@ def _plot_network(results, rows, scenario, directory):
         ax.plot(np.arange(1, rmse.size + 1), rmse, style, color=f"C{index % 10}", label=name)
     ax.set(title=f"{scenario.name}: position RMSE over runs and nodes", xlabel="step",
            ylabel="RMSE [m]", yscale="log")
+    _plain_log_ticks(ax)
     ax.legend(fontsize="small", ncol=2)
     paths.append(directory / "rmse.png")
     fig.savefig(paths[-1], dpi=110)
