@@ -35,14 +35,23 @@ def _report_without_timings(text):
     return re.sub(r"(?m)^(\s+\d+ .*?)\s+[\d.]+$", r"\1", text)  # Fig. 10's time column
 
 
+def _cpu_seconds(client):
+    """CPU seconds of this process plus those of every worker process so far."""
+    workers = 0.0 if client is None else sum(client.run(time.process_time).values())
+    return time.process_time() + workers
+
+
 def _run(args, client):
+    """Wall seconds, CPU seconds (all processes) and the report of one reproduction."""
     namespace = weng_arguments(args)
     out = io.StringIO()
     if client is not None:
         namespace.scheduler = client.cluster.scheduler_address
+    cpu = _cpu_seconds(client)
     start = time.perf_counter()
     weng.run(namespace, out=out)
-    return time.perf_counter() - start, out.getvalue()
+    wall = time.perf_counter() - start
+    return wall, _cpu_seconds(client) - cpu, out.getvalue()
 
 
 def weng_arguments(args):
@@ -63,22 +72,25 @@ def main(argv=None):
 
     print(f"Weng & Djurić reproduction, --runs {args.runs}, sections {args.only}; "
           f"chunks of {montecarlo.DEFAULT_CHUNK_SIZE} runs")
-    timings, reports = {}, {}
-    timings["in process"], reports["in process"] = _run(args, None)
+    timings, cpu, reports = {}, {}, {}
+    timings["in process"], cpu["in process"], reports["in process"] = _run(args, None)
     for workers in (1, 2):
         start = time.perf_counter()
         with montecarlo.dask_client(workers=workers) as client:
             started = time.perf_counter() - start
             label = f"{workers} worker{'s' if workers > 1 else ''}"
-            timings[label], reports[label] = _run(args, client)
+            timings[label], cpu[label], reports[label] = _run(args, client)
         print(f"  (local cluster of {workers} started in {started:.1f} s, not counted)")
     baseline = _report_without_timings(reports["in process"])
     for label, report in reports.items():
         if _report_without_timings(report) != baseline:
             raise SystemExit(f"the report on {label} differs from the in-process report")
-    print(f"\n{'run':<12} {'seconds':>8} {'vs in process':>14}")
+    print(f"\n{'run':<12} {'wall [s]':>8} {'vs in process':>14} {'CPU [s]':>8}")
     for label, seconds in timings.items():
-        print(f"{label:<12} {seconds:>8.1f} {timings['in process'] / seconds:>13.2f}x")
+        print(f"{label:<12} {seconds:>8.1f} {timings['in process'] / seconds:>13.2f}x "
+              f"{cpu[label]:>8.1f}")
+    print("(CPU: this process and the worker processes; the scheduler's and nannies' are "
+          "not counted. Wall time depends on what else runs on the machine.)")
     ratio = timings["1 worker"] / timings["2 workers"]
     print(f"\n1 worker / 2 workers: {ratio:.2f}x (identical reports: yes)")
     return ratio
