@@ -176,8 +176,12 @@ def _run_chunk(study, seed_sequence, runs):
 
 
 def _study_name(study):
-    inner = getattr(study, "func", study)  # functools.partial
-    return getattr(inner, "__name__", type(inner).__name__)
+    """The progress bar's label: the study's ``__name__`` (for a partial, its function's)."""
+    name = getattr(study, "__name__", None)
+    if name is None:
+        inner = getattr(study, "func", study)  # functools.partial
+        name = getattr(inner, "__name__", type(inner).__name__)
+    return name
 
 
 def _check_result(result, runs, study):
@@ -236,7 +240,9 @@ def run(study, runs, *, chunk_size=None, client=None, seed=None, progress=None):
         :class:`MonteCarloError`); a Generator contributes entropy drawn from it.
     progress : bool or None, optional
         ``True`` draws a progress bar on stderr, ``False`` never; ``None`` (default) draws
-        it only when stderr is a terminal and the study has run for more than 2 s.
+        it only when stderr is a terminal and the study has run for more than 2 s. The bar
+        is labelled with the study's ``__name__`` (a partial's function's, unless the
+        partial is given a ``__name__``).
 
     Returns
     -------
