@@ -96,6 +96,9 @@ def test_unknown_demo_method_is_an_error():
     (["demo", "--scenario", "two-tracks", "--delay"], "--delay applies to the network"),
     (["demo", "--nodes", "4"], "naveen-taylor has six nodes"),
     (["frobnicate"], "invalid choice"),
+    (["reproduce", "weng", "--runs", "0"], "argument --runs: must be at least 1"),
+    (["reproduce", "naveen", "--plot", "/proc/cifilter-figures"], "argument --plot"),
+    (["reproduce"], "required: PAPER"),
 ])
 def test_bad_arguments_exit_2_with_one_line(arguments, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
