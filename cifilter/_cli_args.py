@@ -23,6 +23,18 @@ def positive_int(text):
     return value
 
 
+def seed(text):
+    """A non-negative integer (``--seed``; the root of numpy's ``SeedSequence``)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a non-negative integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be non-negative, got {value}")
+    return value
+
+
 def probability(text):
     """A float in [0, 1] (e.g. a packet loss probability)."""
     try:

@@ -55,8 +55,9 @@ def covariance_ellipse(P, mean=(0.0, 0.0), confidence=0.95, n_points=100):
     return np.asarray(mean, dtype=float).reshape(2, 1) + radius * (L @ circle)
 
 
-def plot_covariance_ellipse(ax, P, mean=(0.0, 0.0), confidence=0.95, **line_kwargs):
-    """Draw a covariance ellipse on a matplotlib axes.
+def plot_covariance_ellipse(ax, P, mean=(0.0, 0.0), confidence=0.95, *, equal_aspect=True,
+                            **line_kwargs):
+    """Draw a covariance ellipse on a matplotlib axes (with equal aspect by default).
 
     Parameters
     ----------
@@ -68,6 +69,9 @@ def plot_covariance_ellipse(ax, P, mean=(0.0, 0.0), confidence=0.95, **line_kwar
         Centre.
     confidence : float or None, optional
         See :func:`covariance_ellipse`.
+    equal_aspect : bool, optional
+        Give the axes an equal aspect ratio (default True): an ellipse drawn with unequal
+        scales misstates which direction is uncertain.
     **line_kwargs
         Passed to ``ax.plot``.
 
@@ -85,7 +89,11 @@ def plot_covariance_ellipse(ax, P, mean=(0.0, 0.0), confidence=0.95, **line_kwar
     >>> from cifilter.plotting import plot_covariance_ellipse
     >>> fig, ax = plt.subplots()
     >>> lines = plot_covariance_ellipse(ax, np.diag([4.0, 1.0]), label="P")
+    >>> ax.get_aspect()
+    1.0
     >>> plt.close(fig)
     """
     points = covariance_ellipse(P, mean, confidence)
+    if equal_aspect:
+        ax.set_aspect("equal")
     return ax.plot(points[0], points[1], **line_kwargs)

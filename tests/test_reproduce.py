@@ -16,13 +16,59 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cifilter.reproduce import naveen, weng
+from cifilter.reproduce import _checks, naveen, weng
 from cifilter.reproduce.weng import (
     compare_estimators,
     repeated_fusion_nees,
     simulate_kalman_model,
     simulate_wishart_model,
 )
+
+
+# ----------------------------------------------------------------- Monte Carlo checks
+def test_estimate_standard_errors_by_hand():
+    rng = np.random.default_rng(0)
+    a = rng.normal(3.0, 2.0, size=500)
+    b = a + rng.normal(1.0, 0.5, size=500)  # strongly paired with a
+    A, B = _checks.Estimate.mean(a), _checks.Estimate.mean(b)
+    assert A.value == pytest.approx(a.mean())
+    assert A.se == pytest.approx(a.std(ddof=1) / np.sqrt(500))
+    # a difference of paired estimates: the SE of the paired differences, not the sum
+    assert (B - A).se == pytest.approx((b - a).std(ddof=1) / np.sqrt(500))
+    assert (B - A).se < 0.2 * np.hypot(A.se, B.se)
+    # a ratio by the delta method: SE of (b - r a) / mean(a)
+    r = b.mean() / a.mean()
+    assert (B / A).value == pytest.approx(r)
+    assert (B / A).se == pytest.approx((b - r * a).std(ddof=1) / np.sqrt(500) / a.mean())
+    # constants carry no error; averages of estimates average the influences
+    assert (2 * A + 1).se == pytest.approx(2 * A.se)
+    assert _checks.mean_of([A, B]).se == pytest.approx(((a + b) / 2).std(ddof=1) / np.sqrt(500))
+    with pytest.raises(ValueError, match="different numbers of runs"):
+        A + _checks.Estimate.mean(a[:10])
+
+
+def test_verdicts_hold_fail_or_are_inconclusive_within_two_standard_errors():
+    def margin(value, se, n=400):
+        # n runs of value -/+ c: mean `value`, SE sqrt(n c^2 / (n (n - 1))) = `se`
+        spread = np.tile([-1.0, 1.0], n // 2) * se * np.sqrt(n - 1)
+        return _checks.Estimate.mean(value + spread)
+
+    assert margin(0.5, 0.1).se == pytest.approx(0.1, rel=1e-3)
+    holds = _checks.verdict([("a", margin(0.5, 0.1)), ("b", margin(0.3, 0.1))])
+    assert holds[:2] == (_checks.HOLDS, "b") and holds[3] == pytest.approx(3.0, rel=1e-3)
+    fails = _checks.verdict([("a", margin(0.5, 0.1)), ("b", margin(-0.3, 0.1))])
+    assert fails[:2] == (_checks.FAILS, "b")
+    noise = _checks.verdict([("a", margin(0.5, 0.1)), ("b", margin(-0.1, 0.1))])
+    assert noise[:2] == (_checks.INCONCLUSIVE, "b")
+    assert _checks.verdict([("a", margin(0.15, 0.1))])[0] == _checks.INCONCLUSIVE
+    out = io.StringIO()
+    claims = _checks.Claims(out)
+    claims.add("here", "a claim", "paper says", "we found", [("point", margin(-0.1, 0.1))])
+    claims.summary()
+    text = out.getvalue()
+    assert "[inconclusive at this size] a claim" in text
+    assert "check: margin -0.1 +/- 0.1 (-1.0 SE)" in text
+    assert "0 hold, 0 fail, 1 inconclusive at this size" in text
 
 
 # ----------------------------------------------------------------- Naveen & Taylor: Section III
@@ -140,9 +186,10 @@ def test_network_at_the_papers_size():
 
 
 def test_network_pc_is_less_conservative_than_ei_with_the_printed_mean():
-    ei = naveen.network("ei", rounds=25, runs=3, rng=5)
-    pc_printed = naveen.network("pcei", rounds=25, runs=3, rng=5, mutual_mean="as-printed")
-    pc_default = naveen.network("pcei", rounds=25, runs=3, rng=5)
+    # 8 rounds (the paper's 25 are in the slow test above): the network has converged
+    ei = naveen.network("ei", rounds=8, runs=3, rng=5)
+    pc_printed = naveen.network("pcei", rounds=8, runs=3, rng=5, mutual_mean="as-printed")
+    pc_default = naveen.network("pcei", rounds=8, runs=3, rng=5)
     det = {k: np.linalg.det(v["P"][:, 0]) for k, v in
            (("ei", ei), ("printed", pc_printed), ("default", pc_default))}
     central = np.linalg.det(ei["central_P"])
@@ -151,7 +198,7 @@ def test_network_pc_is_less_conservative_than_ei_with_the_printed_mean():
     # with Sijs & Lazar's mean the constraint only acts when two nodes' covariances agree
     assert np.all(det["default"] <= det["ei"] * (1 + 1e-9))
     assert np.all(det["default"] >= 0.99 * det["ei"])
-    # all nodes agree after 25 rounds
+    # all nodes agree after 8 rounds
     assert np.abs(ei["P"] - ei["P"][:, :1]).max() < 1e-10
 
 
@@ -170,13 +217,104 @@ def test_simulated_models_have_the_stated_covariances():
     np.testing.assert_array_equal(w.Ps[:, 1], w.joint[:, 2:4, 2:4])
 
 
+def _weng_args(**changes):
+    args = dict(runs=60, samples=5, conference_runs=20, conference_samples=5, model2_dof=None,
+                only=["model1", "samples", "nees"], seed=0, plot=None, workers=None,
+                scheduler=None)
+    return argparse.Namespace(**(args | changes))
+
+
+def _numbers_of(text):
+    """The report without its timings (compute seconds differ from run to run)."""
+    lines = [line for line in text.splitlines()
+             if not line.startswith(("total", "62 configurations")) and "s of compute" not in line]
+    table = False
+    kept = []
+    for line in lines:  # Fig. 10's table ends with a time column
+        if line.lstrip().startswith("M ") and "time [s]" in line:
+            table = True
+        elif table and not line.strip()[:1].isdigit():
+            table = False
+        kept.append(line.rsplit(" ", 1)[0] if table else line)
+    return "\n".join(kept)
+
+
 def test_reproduction_command_at_a_tiny_size():
     out = io.StringIO()
-    args = argparse.Namespace(runs=60, samples=5, conference_runs=20, conference_samples=5,
-                              model2_dof=None, only="model1,samples,nees", seed=0, figures=None)
-    assert weng.run(args, out=out) == 0
+    assert weng.run(_weng_args(), out=out) == 0
     text = out.getvalue()
     assert "Fig. 4" in text and "Fig. 10" in text and "Summary of the claims" in text
+    # every claim is judged with a standard error; the summary counts the verdicts
+    assert text.count("check: margin") == text.count("paper:")
+    assert "+/-" in text and "inconclusive at this size" in text
+    counts = [line for line in text.splitlines() if line.strip().endswith("at this size")
+              and "hold," in line]
+    assert len(counts) == 1
+
+
+def test_weng_numbers_do_not_depend_on_the_other_sections():
+    """A configuration's stream depends on the seed and the configuration only."""
+    args = _weng_args(only=["model1"])
+    config = weng._model1_configs(args)[2][0]
+    alone, _ = weng._run_configs([config], 40, "t", 1, args, None)
+    together, _ = weng._run_configs(weng._model1_configs(args)[3] + [config], 40, "t", 1,
+                                    args, None)
+    for target in alone[config]:
+        for e, value in alone[config][target].items():
+            assert value.value == together[config][target][e].value
+
+
+def test_weng_on_a_dask_scheduler_gives_the_in_process_report():
+    distributed = pytest.importorskip("distributed")
+    here = io.StringIO()
+    weng.run(_weng_args(only=["model1", "nees"], runs=40), out=here)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=":0") as cluster:
+        there = io.StringIO()
+        weng.run(_weng_args(only=["model1", "nees"], runs=40,
+                            scheduler=cluster.scheduler_address), out=there)
+    assert _numbers_of(there.getvalue()) == _numbers_of(here.getvalue())
+
+
+@pytest.mark.parametrize("module, argv, problem", [
+    ("weng", ["--runs", "0"], "--runs"),
+    ("weng", ["--only", "model1,foo"], "--only"),
+    ("weng", ["--seed", "-1"], "--seed"),
+    ("weng", ["--model2-dof", "nan"], "--model2-dof"),
+    ("weng", ["--workers", "0"], "--workers"),
+    ("weng", ["--workers", "2", "--scheduler", "tcp://x:1"], "not allowed"),
+    ("naveen", ["--sets", "-3"], "--sets"),
+    ("naveen", ["--plot", "/proc/cifilter-figures"], "--plot"),
+])
+def test_bad_reproduction_arguments_exit_2_before_any_work(module, argv, problem, capsys):
+    parser = argparse.ArgumentParser(prog=module)
+    {"weng": weng, "naveen": naveen}[module].add_arguments(parser)
+    with pytest.raises(SystemExit) as exit_:
+        parser.parse_args(argv)
+    assert exit_.value.code == 2
+    assert problem in capsys.readouterr().err
+
+
+def test_reproductions_take_the_plot_directory_and_parallel_options():
+    for module in (weng, naveen):
+        parser = argparse.ArgumentParser()
+        module.add_arguments(parser)
+        options = {a.dest for a in parser._actions}
+        assert {"plot", "workers", "scheduler", "seed"} <= options
+        assert "figures" not in options
+
+
+@pytest.mark.slow
+def test_naveen_command_at_a_tiny_size_writes_figures_with_headers(tmp_path, capsys):
+    from cifilter.cli import main
+
+    assert main(["reproduce", "naveen", "--sets", "2", "--draws", "2", "--runs", "2",
+                 "--rounds", "1", "--plot", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "mutual mean regulariser  dof" in out  # the NEES table's header
+    assert "method         mean det" in out  # the network table's header
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "naveen_fig2.png", "naveen_fig4.png", "naveen_fig6.png"]
 
 
 def test_reproduction_helpers_reject_unknown_rules():

@@ -9,6 +9,7 @@ import os
 
 import numpy as np
 
+from .._cli_args import plot_directory, positive_int
 from ..ci import covariance_intersection
 from ..horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
 
@@ -44,8 +45,9 @@ def add_arguments(parser):
     >>> parser.parse_args(["--horizons", "20"]).horizons
     20
     """
-    parser.add_argument("--plot", metavar="DIR", help="write Figs. 3-8 as PNG files to DIR")
-    parser.add_argument("--horizons", type=int, default=50,
+    parser.add_argument("--plot", metavar="DIR", type=plot_directory,
+                        help="write Figs. 3-8 as PNG files to DIR")
+    parser.add_argument("--horizons", type=positive_int, default=50,
                         help="largest horizon kappa of Figs. 3, 4, 6, 7 (default 50)")
 
 

@@ -4,6 +4,11 @@ Reproduces Section III (cases 1-3, Fig. 2), Table I and Fig. 4 (Monte Carlo over
 inverse-Wishart input sets) and Section V-B (the six-node network, Fig. 6), for both
 mutual means of eq. (13) and both placements of the regulariser, and checks how often the
 rules are conservative. Every number is printed next to the paper's.
+
+The Monte Carlo parts (Table I over input sets, Section V-B over networks) run through
+:func:`cifilter.montecarlo.run`: in process, or with ``--workers N`` / ``--scheduler
+ADDRESS`` on Dask, with the same numbers. Every EI variant of Table I sees the same input
+sets, and every rule of Section V-B the same initial estimates.
 """
 
 from dataclasses import dataclass
@@ -11,10 +16,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from .._cli_args import positive_int
 from .._validation import as_rng, check_int
 from ..ei import ellipsoidal_intersection
 from ..optimal import naive_fusion, optimal_fusion
 from ..pcei import pc_ellipsoidal_intersection
+from ._checks import Estimate
+from ._common import add_common_arguments, parallel_client, run_study
 
 __all__ = ["NETWORK_EDGES", "case_one", "input_sets", "network", "table_one"]
 
@@ -230,42 +238,75 @@ def table_one(dofs=(2, 10, 100), sets=35, rng=None, *, mutual_mean="as-printed",
     results = {}
     for dof in dofs:
         s = input_sets(dof, sets, rng, draws=draws)
-        n = s.x.shape[-1]
-        best = optimal_fusion(s.x, np.broadcast_to(s.joint, s.x.shape[:-2] + s.joint.shape[-2:]))
-        bound = stats.chi2.ppf(0.95, df=n)
-        fused = {"EI": _fuse_sets(s, None, mutual_mean, regularizer, eps)}
-        for alpha in alphas:
-            fused[alpha] = _fuse_sets(s, alpha, mutual_mean, regularizer, eps)
-        row = {"det": {}, "mse": {}, "mse_truth": {}, "det_all": {}, "nees_inside": {},
-               "mean_nees": {}, "infeasible": {}, "kkt_max": {}}
-        for key, r in list(fused.items()) + [("optimal", best)]:
-            det = np.linalg.det(r.P)
-            nees = np.einsum("...i,...ij,...j->...", r.x, np.linalg.inv(r.P), r.x)
-            row["nees_inside"][key] = float(np.mean(nees <= bound))
-            row["mean_nees"][key] = float(np.mean(nees))
-            if key == "optimal":
-                continue
-            row["det"][key] = float(np.mean(det))
-            row["det_all"][key] = det[:, 0]
-            row["mse"][key] = float(np.mean(np.sum((r.x - best.x) ** 2, axis=-1)))
-            row["mse_truth"][key] = float(np.mean(np.sum(r.x**2, axis=-1)))
-            if key != "EI":
-                row["infeasible"][key] = int(np.sum(~r.info["feasible"]))
-                row["kkt_max"][key] = float(np.nanmax(np.where(r.info["active"],
-                                                               r.info["kkt_residual"], 0.0)))
-        # EI's gains do not depend on the means: its true error covariance is K J K^T, and
-        # P bounds it when P - K J K^T is positive semidefinite.
-        K = np.concatenate([fused["EI"].gains[:, 0, 0], fused["EI"].gains[:, 0, 1]], axis=-1)
-        true_cov = K @ s.joint[:, 0] @ np.swapaxes(K, -1, -2)
-        gap = np.linalg.eigvalsh(fused["EI"].P[:, 0] - true_cov)[:, 0]
-        row["ei_bounds"] = float(np.mean(gap >= -1e-12 * np.abs(true_cov).max(axis=(-2, -1))))
-        ratio = np.linalg.eigvals(np.linalg.solve(fused["EI"].P[:, 0], true_cov)).real.max(-1)
-        row["ei_excess"] = float(np.max(ratio))
-        det_ei = np.linalg.det(fused["EI"].P)
-        row["pc_not_above_ei"] = bool(all(
-            np.all(np.linalg.det(fused[a].P) <= det_ei * (1 + 1e-9)) for a in alphas))
-        results[dof] = row
+        per_set = _table_one_per_set(s, mutual_mean, regularizer, eps, alphas)
+        results[dof] = _table_one_row(per_set, alphas)
     return results
+
+
+def _table_one_per_set(s, mutual_mean, regularizer, eps, alphas):
+    """Table I's statistics of every input set (first axis: sets), for one EI variant.
+
+    Keys ``(statistic, method)`` or ``(statistic,)``; :func:`_table_one_row` reduces them
+    over the sets to the numbers of :func:`table_one`.
+    """
+    n = s.x.shape[-1]
+    best = optimal_fusion(s.x, np.broadcast_to(s.joint, s.x.shape[:-2] + s.joint.shape[-2:]))
+    bound = stats.chi2.ppf(0.95, df=n)
+    fused = {"EI": _fuse_sets(s, None, mutual_mean, regularizer, eps)}
+    for alpha in alphas:
+        fused[alpha] = _fuse_sets(s, alpha, mutual_mean, regularizer, eps)
+    out = {}
+    for key, r in list(fused.items()) + [("optimal", best)]:
+        nees = np.einsum("...i,...ij,...j->...", r.x, np.linalg.inv(r.P), r.x)
+        out[("nees_inside", key)] = np.mean(nees <= bound, axis=1)
+        out[("mean_nees", key)] = np.mean(nees, axis=1)
+        if key == "optimal":
+            continue
+        det = np.linalg.det(r.P)
+        out[("det", key)] = np.mean(det, axis=1)
+        out[("det_all", key)] = det[:, 0]
+        out[("mse", key)] = np.mean(np.sum((r.x - best.x) ** 2, axis=-1), axis=1)
+        out[("mse_truth", key)] = np.mean(np.sum(r.x**2, axis=-1), axis=1)
+        if key != "EI":
+            out[("infeasible", key)] = np.sum(~r.info["feasible"], axis=1)
+            # fmax ignores NaN (an inactive constraint has no KKT residual) without a warning
+            out[("kkt_max", key)] = np.fmax.reduce(
+                np.where(r.info["active"], r.info["kkt_residual"], 0.0), axis=1)
+    # EI's gains do not depend on the means: its true error covariance is K J K^T, and
+    # P bounds it when P - K J K^T is positive semidefinite.
+    K = np.concatenate([fused["EI"].gains[:, 0, 0], fused["EI"].gains[:, 0, 1]], axis=-1)
+    true_cov = K @ s.joint[:, 0] @ np.swapaxes(K, -1, -2)
+    gap = np.linalg.eigvalsh(fused["EI"].P[:, 0] - true_cov)[:, 0]
+    out[("ei_bounds",)] = gap >= -1e-12 * np.abs(true_cov).max(axis=(-2, -1))
+    ratio = np.linalg.eigvals(np.linalg.solve(fused["EI"].P[:, 0], true_cov)).real.max(-1)
+    out[("ei_excess",)] = ratio
+    det_ei = np.linalg.det(fused["EI"].P)
+    out[("pc_not_above_ei",)] = np.all(
+        [np.all(np.linalg.det(fused[a].P) <= det_ei * (1 + 1e-9), axis=1) for a in alphas],
+        axis=0)
+    return out
+
+
+def _table_one_row(per_set, alphas):
+    """One ``dof`` row of :func:`table_one` from the per-set statistics."""
+    row = {"det": {}, "mse": {}, "mse_truth": {}, "det_all": {}, "nees_inside": {},
+           "mean_nees": {}, "infeasible": {}, "kkt_max": {}}
+    for key, values in per_set.items():
+        if len(key) == 1:
+            continue
+        name, method = key
+        if name == "det_all":
+            row[name][method] = values
+        elif name == "infeasible":
+            row[name][method] = int(np.sum(values))
+        elif name == "kkt_max":
+            row[name][method] = float(np.fmax.reduce(values))
+        else:
+            row[name][method] = float(np.mean(values))
+    row["ei_bounds"] = float(np.mean(per_set[("ei_bounds",)]))
+    row["ei_excess"] = float(np.max(per_set[("ei_excess",)]))
+    row["pc_not_above_ei"] = bool(np.all(per_set[("pc_not_above_ei",)]))
+    return row
 
 
 # --------------------------------------------------------------------------- Section V-B
@@ -314,8 +355,19 @@ def network(method, rounds=25, runs=1, rng=None, *, dof=30, edges=NETWORK_EDGES,
     if method not in ("ei", "pcei"):
         raise ValueError(f"method must be 'ei' or 'pcei', got {method!r}")
     nodes = 1 + max(max(edge) for edge in edges)
+    x0, P0 = _initial_estimates(runs, nodes, dof, rng)
+    return _fuse_network(x0, P0, method, rounds, edges, options)
+
+
+def _initial_estimates(runs, nodes, dof, rng):
+    """Independent 2-D estimates of every node: covariance inverse Wishart, mean drawn from it."""
     P0 = _inverse_wishart(dof, runs * nodes, 2, rng).reshape(runs, nodes, 2, 2)
     x0 = np.einsum("rnij,rnj->rni", np.linalg.cholesky(P0), rng.standard_normal((runs, nodes, 2)))
+    return x0, P0
+
+
+def _fuse_network(x0, P0, method, rounds, edges, options):
+    """Rounds of pairwise fusion along the edges, from the initial estimates (batched)."""
     central = naive_fusion(x0, P0)
     rule = ellipsoidal_intersection if method == "ei" else pc_ellipsoidal_intersection
     x, P = x0.copy(), P0.copy()
@@ -328,17 +380,49 @@ def network(method, rounds=25, runs=1, rng=None, *, dof=30, edges=NETWORK_EDGES,
 
 
 # --------------------------------------------------------------------------- command line
+TABLE_ONE_DOFS = (2, 10, 100)
+ALPHAS = (0.05, 0.01)
+# Runs per Monte Carlo chunk (the numbers depend on them). A call of a rule costs about a
+# millisecond whatever the batch, so chunks are large: the paper's 35 input sets make two
+# chunks (one per core of a 2-core machine), and the 25 x 7 sequential fusions of the
+# network are batched over 20 networks (more runs than that spread over workers).
+TABLE_ONE_CHUNK = 18
+NETWORK_CHUNK = 20
+NETWORK_METHODS = (
+    ("EI", "ei", {}),
+    ("PC sijs-lazar", "pcei", {"alpha": 0.05}),
+    ("PC as-printed", "pcei", {"alpha": 0.05, "mutual_mean": "as-printed"}),
+    ("EI as-printed", "ei", {"mutual_mean": "as-printed"}),
+)
+NETWORK_SEED_KEY = len(TABLE_ONE_DOFS)  # Table I's studies use keys 0, 1, 2 (one per dof)
+
+
 def add_arguments(parser):
-    """Options of ``python -m cifilter reproduce naveen``."""
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--sets", type=int, default=35,
+    """Options of ``python -m cifilter reproduce naveen``.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The ``naveen`` sub-command's parser.
+
+    Examples
+    --------
+    >>> import argparse
+    >>> from cifilter.reproduce import naveen
+    >>> parser = argparse.ArgumentParser()
+    >>> naveen.add_arguments(parser)
+    >>> parser.parse_args(["--sets", "10"]).sets
+    10
+    """
+    parser.add_argument("--sets", type=positive_int, default=35,
                         help="input sets per degree of freedom for Table I (paper: 35)")
-    parser.add_argument("--draws", type=int, default=20,
+    parser.add_argument("--draws", type=positive_int, default=20,
                         help="mean draws per input set for the NEES statistics (default 20)")
-    parser.add_argument("--runs", type=int, default=20,
+    parser.add_argument("--runs", type=positive_int, default=20,
                         help="independent six-node networks for Section V-B (default 20)")
-    parser.add_argument("--figures", metavar="DIR",
-                        help="write Fig. 2 (a, b), Fig. 4 and Fig. 6 as PNG files into DIR")
+    parser.add_argument("--rounds", type=positive_int, default=25,
+                        help="rounds of fusion along every edge in Section V-B (paper: 25)")
+    add_common_arguments(parser, "write Fig. 2 (a, b), Fig. 4 and Fig. 6 as PNG files to DIR")
 
 
 def _print_case_one():
@@ -394,37 +478,67 @@ def _print_case_two_three():
           f"solver {same.info['solver']!r}")
 
 
-def _print_table_one(args):
+def _table_one_study(rng, runs, dof, draws):
+    """Monte Carlo study of Table I: ``runs`` input sets, every EI variant on the same sets."""
+    s = input_sets(dof, runs, rng, draws=draws)
+    out = {}
+    for v, (mutual_mean, regularizer, eps) in enumerate(VARIANTS):
+        for key, values in _table_one_per_set(s, mutual_mean, regularizer, eps, ALPHAS).items():
+            out[(v,) + key] = values
+    return out
+
+
+def _table_one_results(args, client):
+    """``{(mutual_mean, regularizer): {dof: (row, per_set)}}`` through montecarlo.run."""
+    results = {(mutual_mean, regularizer): {} for mutual_mean, regularizer, _ in VARIANTS}
+    for index, dof in enumerate(TABLE_ONE_DOFS):
+        arrays = run_study(_table_one_study, f"naveen Table I, dof {dof}", args.sets,
+                           args.seed, index, client, chunk_size=TABLE_ONE_CHUNK, dof=dof,
+                           draws=args.draws)
+        for v, (mutual_mean, regularizer, _) in enumerate(VARIANTS):
+            per_set = {key[1:]: values for key, values in arrays.items() if key[0] == v}
+            results[(mutual_mean, regularizer)][dof] = (_table_one_row(per_set, ALPHAS),
+                                                        per_set)
+    return results
+
+
+def _reduction(per_set, name, alpha):
+    """``1 - mean(PC) / mean(EI)`` of a per-set statistic, with its standard error."""
+    pc, ei = Estimate.mean(per_set[(name, alpha)]), Estimate.mean(per_set[(name, "EI")])
+    return 1 - pc / ei
+
+
+def _print_table_one(args, client):
     print(f"\nTable I: {args.sets} input sets per dof (inverse Wishart, scale dof I), "
           f"{args.draws} mean draws each; det = average fused determinant, MSE = squared "
           "error against the optimal (known-correlation) fused mean, as the text defines it; "
           "MSE(x) = squared error against the truth (for comparison: the paper's MSE "
-          "magnitudes resemble these)")
-    all_results = {}
-    for mutual_mean, regularizer, eps in VARIANTS:
-        rng = np.random.default_rng(args.seed)
-        out = table_one(sets=args.sets, rng=rng, mutual_mean=mutual_mean,
-                        regularizer=regularizer, eps=eps, draws=args.draws)
-        all_results[(mutual_mean, regularizer)] = out
+          "magnitudes resemble these); -% = decrease against EI with its standard error over "
+          "the sets")
+    results = _table_one_results(args, client)
+    for (mutual_mean, regularizer, eps) in VARIANTS:
+        out = results[(mutual_mean, regularizer)]
         print(f"\n  mutual mean {mutual_mean!r}, regulariser {regularizer!r} (eps={eps})")
-        print(f"  {'dof':>4} {'':6} {'PC .05':>9} {'PC .01':>9} {'EI':>9} {'-%(.05)':>8} "
-              f"{'-%(.01)':>8} | paper PC .05 / PC .01 / EI")
-        for dof, row in out.items():
+        print(f"  {'dof':>4} {'':6} {'PC .05':>9} {'PC .01':>9} {'EI':>9} "
+              f"{'-%(.05) +/- SE':>16} {'-%(.01) +/- SE':>16} | paper PC .05 / PC .01 / EI")
+        for dof, (row, per_set) in out.items():
             paper = PAPER_TABLE_ONE[dof]
             for k, name in enumerate(("det", "mse", "mse_truth")):
                 v = row[name]
-                red = [100 * (v["EI"] - v[a]) / v["EI"] for a in (0.05, 0.01)]
+                red = [_reduction(per_set, name, a) for a in ALPHAS]
                 k = min(k, 1)
                 label = {"det": "det", "mse": "MSE", "mse_truth": "MSE(x)"}[name]
                 print(f"  {dof:>4} {label:6} {v[0.05]:9.4f} {v[0.01]:9.4f} {v['EI']:9.4f} "
-                      f"{red[0]:7.2f}% {red[1]:7.2f}% | {paper[3 * k]} / {paper[3 * k + 1]} / "
-                      f"{paper[3 * k + 2]}")
+                      + " ".join(f"{100 * r.value:7.2f}% +/- {100 * r.se:5.2f}" for r in red)
+                      + f" | {paper[3 * k]} / {paper[3 * k + 1]} / {paper[3 * k + 2]}")
             print(f"  {'':4} det(PC) <= det(EI) in every instance: {row['pc_not_above_ei']}; "
                   f"infeasible (test rejects) {row['infeasible']}; max KKT residual "
                   f"{max(row['kkt_max'].values()):.1e}")
-        _print_trends(out)
-    _print_nees(all_results)
-    return all_results
+        _print_trends({dof: row for dof, (row, _) in out.items()})
+    table = {variant: {dof: row for dof, (row, _) in out.items()}
+             for variant, out in results.items()}
+    _print_nees(table)
+    return table
 
 
 def _print_trends(out):
@@ -438,31 +552,47 @@ def _print_trends(out):
 
 
 def _print_nees(all_results):
-    print("\nConservativeness on the Table I simulation (share of NEES within the 95% "
-          "chi-square bound, 95% or more for a conservative estimator; mean NEES, 2 for a "
-          "consistent one):")
+    print("\nConservativeness on the Table I simulation: share of NEES within the 95% "
+          "chi-square bound (95% or more for a conservative estimator) and mean NEES in "
+          "parentheses (2 for a consistent one); the share of sets whose EI covariance bounds "
+          "EI's true error covariance, and the worst factor by which it falls short")
+    keys = ("optimal", "EI", 0.05, 0.01)
+    names = ("optimal", "EI", "PC .05", "PC .01")
+    print(f"  {'mutual mean':<11} {'regulariser':<11} {'dof':>4} "
+          + " ".join(f"{name:>14}" for name in names) + f" {'EI P bounds':>12} {'excess':>7}")
     for (mutual_mean, regularizer), out in all_results.items():
         for dof, row in out.items():
             inside, mean = row["nees_inside"], row["mean_nees"]
-            print(f"  {mutual_mean:10} {regularizer:11} dof {dof:>3}: " + ", ".join(
-                f"{key if isinstance(key, str) else 'PC ' + str(key)} {100 * inside[key]:.1f}%"
-                f" ({mean[key]:.2f})" for key in ("optimal", "EI", 0.05, 0.01))
-                + f"; EI's P bounds its true error covariance in {100 * row['ei_bounds']:.0f}%"
-                f" of the sets (worst excess factor {row['ei_excess']:.2f})")
+            print(f"  {mutual_mean:<11} {regularizer:<11} {dof:>4} "
+                  + " ".join(f"{100 * inside[key]:6.1f}% ({mean[key]:4.2f})" for key in keys)
+                  + f" {100 * row['ei_bounds']:11.0f}% {row['ei_excess']:7.2f}")
 
 
-def _print_network(args):
-    print(f"\nSection V-B: six-node network {NETWORK_EDGES}, 25 rounds, {args.runs} runs; "
+def _network_study(rng, runs, rounds, dof):
+    """Monte Carlo study of Section V-B: the same initial estimates for every method."""
+    nodes = 1 + max(max(edge) for edge in NETWORK_EDGES)
+    x0, P0 = _initial_estimates(runs, nodes, dof, rng)
+    out = {}
+    for label, method, options in NETWORK_METHODS:
+        for key, values in _fuse_network(x0, P0, method, rounds, NETWORK_EDGES,
+                                         options).items():
+            out[(label, key)] = values
+    return out
+
+
+def _print_network(args, client):
+    rounds = getattr(args, "rounds", 25)
+    print(f"\nSection V-B: six-node network {NETWORK_EDGES}, {rounds} rounds, {args.runs} runs; "
           "determinant of node 0's covariance")
+    arrays = run_study(_network_study, "naveen Section V-B", args.runs, args.seed,
+                       NETWORK_SEED_KEY, client, chunk_size=NETWORK_CHUNK, rounds=rounds,
+                       dof=30)
+    print(f"  {'method':<14} {'mean det':>8} {'+/- SE':>7} {'centralised':>11} "
+          f"{'P >= central':>12} {'nodes agree':>11} {'NEES in 95%':>11}")
     rows = {}
-    for label, method, options in (
-        ("EI", "ei", {}),
-        ("PC sijs-lazar", "pcei", {"alpha": 0.05}),
-        ("PC as-printed", "pcei", {"alpha": 0.05, "mutual_mean": "as-printed"}),
-        ("EI as-printed", "ei", {"mutual_mean": "as-printed"}),
-    ):
-        out = network(method, runs=args.runs, rng=args.seed, **options)
-        det = np.linalg.det(out["P"][:, 0])
+    for label, _, _ in NETWORK_METHODS:
+        out = {key: values for (name, key), values in arrays.items() if name == label}
+        det = Estimate.mean(np.linalg.det(out["P"][:, 0]))
         spread = np.abs(out["x"] - out["x"][:, :1]).max()
         contains = np.linalg.eigvalsh(out["P"][:, 0] - out["central_P"]).min(axis=-1) >= -1e-12
         nees = np.einsum("ri,rij,rj->r", out["x"][:, 0], np.linalg.inv(out["P"][:, 0]),
@@ -470,9 +600,8 @@ def _print_network(args):
         rows[label] = out
         central = np.linalg.det(out["central_P"]).mean()
         inside = np.mean(nees <= stats.chi2.ppf(0.95, 2))
-        print(f"  {label:14} mean det {det.mean():.4f}  (centralised {central:.4f}); "
-              f"P >= centralised P in {100 * contains.mean():.0f}% of runs; nodes agree to "
-              f"{spread:.1e}; NEES within 95% bound {100 * inside:.0f}%")
+        print(f"  {label:<14} {det.value:8.4f} {det.se:7.4f} {central:11.4f} "
+              f"{100 * contains.mean():11.0f}% {spread:11.1e} {100 * inside:10.0f}%")
     print("  text: 'adding the probabilistic constraints leads to a fused covariance that is "
           "much less conservative than EI'")
     return rows
@@ -488,7 +617,6 @@ def _figures(directory, table, networks):
 
     from ..plotting import plot_covariance_ellipse
 
-    os.makedirs(directory, exist_ok=True)
     grid = np.linspace(0.2, 2.0, 181)
     grid = grid[np.abs(grid - 1.0) > 1e-9]
     fig, axes = plt.subplots(2, 2, figsize=(11, 8), layout="constrained")
@@ -496,10 +624,13 @@ def _figures(directory, table, networks):
         c_ei, m_ei, _ = case_two(grid, None, mutual_mean=mutual_mean)
         c_pc, m_pc, _ = case_two(grid, 0.05, mutual_mean=mutual_mean)
         ax = axes[0, column]
-        ax.plot(grid, m_ei[:, 0], "C0-", grid, m_ei[:, 1], "C0-", label="EI")
-        ax.plot(grid, m_pc[:, 0], "C1--", grid, m_pc[:, 1], "C1--", label="PC (alpha 0.05)")
+        ax.plot(grid, m_ei[:, 0], "C0-", label="EI")
+        ax.plot(grid, m_ei[:, 1], "C0-")
+        ax.plot(grid, m_pc[:, 0], "C1--", label="PC (alpha 0.05)")
+        ax.plot(grid, m_pc[:, 1], "C1--")
         ax.set(ylim=(-15, 15), xlabel="C_a", ylabel="independent means",
                title=f"Fig. 2a, mutual mean {mutual_mean!r}")
+        ax.legend()
         ax = axes[1, column]
         ax.plot(grid, c_ei, "r-", label="EI")
         ax.plot(grid, c_pc, "b-", label="PC (alpha 0.05)")
@@ -513,9 +644,11 @@ def _figures(directory, table, networks):
     for ax, ((mutual_mean, regularizer), out) in zip(np.atleast_1d(axes), table.items()):
         data = [100 * (out[d]["det_all"]["EI"] - out[d]["det_all"][0.01]) / out[d]["det_all"]["EI"]
                 for d in sorted(out)]
-        ax.boxplot(data, tick_labels=[str(d) for d in sorted(out)])
+        boxes = ax.boxplot(data, tick_labels=[str(d) for d in sorted(out)])
         ax.set(xlabel="inverse-Wishart dof", ylabel="decrease of det vs EI [%]",
                title=f"Fig. 4 ({mutual_mean}, {regularizer})")
+        ax.legend([boxes["boxes"][0]], ["PC (alpha 0.01) vs EI, per input set"],
+                  fontsize="small")
     fig.savefig(os.path.join(directory, "naveen_fig4.png"), dpi=100)
     plt.close(fig)
 
@@ -523,7 +656,8 @@ def _figures(directory, table, networks):
                              layout="constrained")
     for ax, (label, out) in zip(np.atleast_1d(axes), networks.items()):
         for k in range(out["P0"].shape[1]):
-            plot_covariance_ellipse(ax, out["P0"][0, k], confidence=None, color="0.75")
+            plot_covariance_ellipse(ax, out["P0"][0, k], confidence=None, color="0.75",
+                                    label="initial (nodes)" if k == 0 else None)
         plot_covariance_ellipse(ax, out["central_P"][0], confidence=None, color="k",
                                 label="centralised")
         plot_covariance_ellipse(ax, out["P"][0, 0], confidence=None, color="C3", label=label)
@@ -535,11 +669,24 @@ def _figures(directory, table, networks):
 
 
 def run(args):
-    """Run the reproduction and print every number next to the paper's; returns 0."""
+    """Run the reproduction and print every number next to the paper's.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The options of :func:`add_arguments` (``workers``, ``scheduler`` and ``plot`` may
+        be missing: in process, no figures).
+
+    Returns
+    -------
+    int
+        0.
+    """
     _print_case_one()
     _print_case_two_three()
-    table = _print_table_one(args)
-    networks = _print_network(args)
-    if args.figures:
-        _figures(args.figures, table, networks)
+    with parallel_client(args) as client:
+        table = _print_table_one(args, client)
+        networks = _print_network(args, client)
+    if getattr(args, "plot", None):
+        _figures(args.plot, table, networks)
     return 0

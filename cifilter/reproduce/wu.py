@@ -8,10 +8,12 @@ import time
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
+from .._cli_args import positive_int
 from ..bounds import ci_trace_bound, worst_case_trace
 from ..ci import covariance_intersection
 from ..optimal import naive_fusion, optimal_fusion
 from ..pci import partial_ci
+from ._common import nonnegative_int
 
 DESCRIPTION = ("Wu, Cai & Fu 2018 (partial-correlation CI): Examples 1-3, Remark 3, "
                "optimality on random instances, iteration counts")
@@ -23,12 +25,13 @@ EXAMPLE_3_CASES = ((2, 4.0, 0.5), (3, 2.0, 0.2), (3, 10.0, 0.9), (4, 5.0, 0.0), 
 
 def add_arguments(parser):
     """Options of ``python -m cifilter reproduce wu``."""
-    parser.add_argument("--instances", type=int, default=200,
+    parser.add_argument("--instances", type=positive_int, default=200,
                         help="random problems per setting for the iteration counts "
                              "(default 200)")
-    parser.add_argument("--optimality", type=int, default=20,
+    parser.add_argument("--optimality", type=positive_int, default=20,
                         help="random problems compared with SLSQP (default 20)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--seed", type=nonnegative_int, default=0,
+                        help="random seed, >= 0 (default 0)")
 
 
 def _row(label, ours, paper, note=""):

@@ -1,0 +1,567 @@
+"""Consistency and accuracy of estimators over Monte Carlo runs, batched.
+
+The normalised estimation error squared (NEES) of an estimate ``x`` with covariance ``P``
+of a true state ``x_true`` is ``(x - x_true)^T P^-1 (x - x_true)`` (Bar-Shalom, Li &
+Kirubarajan 2001, Sec. 5.4); a consistent ``n``-dimensional estimator has NEES
+distributed as chi-square with ``n`` degrees of freedom. Averaged over ``N`` independent
+Monte Carlo runs (the ANEES), ``N * ANEES`` is chi-square with ``N n`` degrees of freedom,
+which gives the two-sided bounds of :func:`chi2_bounds`. The normalised innovation
+squared (NIS) is the same statistic of an innovation and its covariance ``S``.
+
+Names follow filterpy (:func:`nees` takes the arguments of ``filterpy.stats.NEES``: true
+states, estimates, covariances) and the metric outputs of Stone Soup (a value with its
+bounds). Every function is vectorised over leading axes; the Monte Carlo runs are one
+axis (``axis=0`` by default).
+
+:func:`conservativeness` tests a covariance against the empirical second moment of the
+errors: ``P`` is conservative when ``P >= E[e e^T]``, i.e. when the smallest generalised
+eigenvalue of ``(P, E[e e^T])`` is at least one; the test gives that eigenvalue with a
+confidence interval.
+"""
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy import stats
+
+from ._linalg import cholesky, mahalanobis_sq, solve_lower
+from ._validation import as_float_array, check_int, check_scalar
+
+__all__ = [
+    "ANEESResult",
+    "ConservativenessResult",
+    "anees",
+    "chi2_bounds",
+    "conservativeness",
+    "nees",
+    "nis",
+    "rmse",
+]
+
+
+def _as_vectors(value, name):
+    """``(..., n)`` from ``(..., n)`` or filterpy's column ``(..., n, 1)``."""
+    array = as_float_array(value, name)
+    if array.ndim >= 2 and array.shape[-1] == 1:
+        array = array[..., 0]
+    if array.ndim < 1:
+        raise ValueError(f"{name} must have at least one axis (the state), got a scalar")
+    return array
+
+
+def nees(x_true, x_est, P):
+    """Normalised estimation error squared, ``(x_est - x_true)^T P^-1 (x_est - x_true)``.
+
+    The arguments are those of ``filterpy.stats.NEES`` (true states, estimates,
+    covariances), with any leading axes (runs, time steps, nodes, ...).
+
+    Parameters
+    ----------
+    x_true : array_like, shape (..., n) or (..., n, 1)
+        True states.
+    x_est : array_like, shape (..., n) or (..., n, 1)
+        Estimates; broadcast against ``x_true``.
+    P : array_like, shape (..., n, n)
+        Covariances of the estimates (symmetric positive definite); broadcast against the
+        errors.
+
+    Returns
+    -------
+    ndarray, shape (...)
+        The NEES of every estimate (chi-square with ``n`` degrees of freedom when the
+        estimator is consistent).
+
+    Raises
+    ------
+    ValueError
+        If the shapes do not match, a value is not finite or a covariance is not positive
+        definite.
+
+    See Also
+    --------
+    anees : the average over Monte Carlo runs with its chi-square bounds.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.metrics import nees
+    >>> float(nees(np.zeros(2), np.array([2.0, 1.0]), np.diag([4.0, 1.0])))
+    2.0
+    """
+    error = _as_vectors(x_est, "x_est") - _as_vectors(x_true, "x_true")
+    return _normalised_square(error, P, "P")
+
+
+def nis(innovation, S):
+    """Normalised innovation squared, ``y^T S^-1 y``.
+
+    Parameters
+    ----------
+    innovation : array_like, shape (..., m) or (..., m, 1)
+        Innovations ``y = z - H x_prior`` (filterpy's ``kf.y``).
+    S : array_like, shape (..., m, m)
+        Their covariances (filterpy's ``kf.S``); broadcast against ``innovation``.
+
+    Returns
+    -------
+    ndarray, shape (...)
+        The NIS of every innovation (chi-square with ``m`` degrees of freedom for a
+        consistent filter).
+
+    Raises
+    ------
+    ValueError
+        If the shapes do not match, a value is not finite or ``S`` is not positive definite.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.metrics import nis
+    >>> float(nis(np.array([[3.0]]), np.array([[9.0]])))
+    1.0
+    """
+    return _normalised_square(_as_vectors(innovation, "innovation"), S, "S")
+
+
+def _normalised_square(error, P, name):
+    P = as_float_array(P, name)
+    n = error.shape[-1]
+    if P.ndim < 2 or P.shape[-2:] != (n, n):
+        raise ValueError(
+            f"{name} must have shape (..., {n}, {n}) to match vectors of length {n}, "
+            f"got {P.shape}")
+    try:
+        np.broadcast_shapes(error.shape[:-1], P.shape[:-2])
+    except ValueError:
+        raise ValueError(
+            f"the batch axes of {name} {P.shape[:-2]} do not broadcast against those of "
+            f"the vectors {error.shape[:-1]}") from None
+    shape = np.broadcast_shapes(error.shape[:-1], P.shape[:-2])
+    return mahalanobis_sq(np.broadcast_to(error, shape + (n,)),
+                          np.broadcast_to(P, shape + (n, n)))
+
+
+def chi2_bounds(dim, runs, confidence=0.95):
+    """Two-sided chi-square bounds of an average of ``runs`` NEES (or NIS) values.
+
+    If the estimator is consistent, ``runs * ANEES`` is chi-square with ``runs * dim``
+    degrees of freedom; the bounds are its ``(1 - confidence) / 2`` and
+    ``(1 + confidence) / 2`` quantiles divided by ``runs`` (Bar-Shalom, Li & Kirubarajan
+    2001, eq. (5.4.2-7)).
+
+    Parameters
+    ----------
+    dim : int
+        Dimension of the state (of the measurement for the NIS).
+    runs : int
+        Number of independent values averaged.
+    confidence : float, optional
+        Probability of the interval, in (0, 1); default 0.95.
+
+    Returns
+    -------
+    lower, upper : float
+        The bounds of the ANEES (they enclose ``dim``).
+
+    Raises
+    ------
+    ValueError
+        If ``dim`` or ``runs`` is below 1 or ``confidence`` is outside (0, 1).
+
+    Examples
+    --------
+    >>> from cifilter.metrics import chi2_bounds
+    >>> [round(b, 3) for b in chi2_bounds(2, 50)]
+    [1.484, 2.591]
+    """
+    dim, runs = check_int(dim, "dim", low=1), check_int(runs, "runs", low=1)
+    confidence = check_scalar(confidence, "confidence", low=0, high=1, low_open=True,
+                              high_open=True)
+    tail = (1.0 - confidence) / 2.0
+    lower, upper = stats.chi2.ppf([tail, 1.0 - tail], df=runs * dim) / runs
+    return float(lower), float(upper)
+
+
+@dataclass(frozen=True)
+class ANEESResult:
+    """The average NEES over Monte Carlo runs and its chi-square bounds (see :func:`anees`).
+
+    The parameters are also the attributes.
+
+    Parameters
+    ----------
+    value : ndarray
+        ANEES at every remaining index (for instance every time step).
+    lower, upper : float
+        Two-sided chi-square bounds (:func:`chi2_bounds`).
+    dim : int
+        Dimension of the state.
+    runs : int
+        Number of runs averaged.
+    confidence : float
+        Probability of the bounds.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.metrics import anees
+    >>> result = anees(np.full((10, 3), 2.0), dim=2)
+    >>> result.verdict, result.share_inside
+    ('consistent', 1.0)
+    """
+
+    value: np.ndarray
+    lower: float
+    upper: float
+    dim: int
+    runs: int
+    confidence: float
+
+    @property
+    def inside(self):
+        """Whether each ANEES lies inside the bounds (boolean array like ``value``).
+
+        Returns
+        -------
+        ndarray of bool
+            ``lower <= value <= upper``.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from cifilter.metrics import anees
+        >>> anees(np.array([[1.0, 9.0]]), dim=1).inside.tolist()
+        [True, False]
+        """
+        return (self.value >= self.lower) & (self.value <= self.upper)
+
+    @property
+    def share_inside(self):
+        """Share of the ANEES values inside the bounds (``confidence`` when consistent).
+
+        Returns
+        -------
+        float
+            In [0, 1].
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from cifilter.metrics import anees
+        >>> anees(np.array([[1.0, 9.0]]), dim=1).share_inside
+        0.5
+        """
+        return float(np.mean(self.inside))
+
+    @property
+    def mean(self):
+        """The ANEES averaged over its remaining indices as well (e.g. over time).
+
+        Returns
+        -------
+        float
+            Mean of ``value``.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from cifilter.metrics import anees
+        >>> anees(np.array([[1.0, 3.0]]), dim=2).mean
+        2.0
+        """
+        return float(np.mean(self.value))
+
+    @property
+    def verdict(self):
+        """``"conservative"``, ``"overconfident"`` or ``"consistent"``.
+
+        The mean ANEES (:attr:`mean`) below the lower bound is conservative (the
+        covariances are larger than the errors), above the upper bound overconfident,
+        otherwise consistent at this number of runs.
+
+        Returns
+        -------
+        str
+            The verdict.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from cifilter.metrics import anees
+        >>> anees(np.full((100, 5), 0.5), dim=2).verdict
+        'conservative'
+        """
+        if self.mean < self.lower:
+            return "conservative"
+        if self.mean > self.upper:
+            return "overconfident"
+        return "consistent"
+
+
+def anees(nees_values, dim, *, axis=0, confidence=0.95):
+    """Average NEES over Monte Carlo runs, with two-sided chi-square bounds.
+
+    Parameters
+    ----------
+    nees_values : array_like
+        NEES values (:func:`nees`) with the independent Monte Carlo runs along ``axis``;
+        other axes (time steps, nodes) are kept. Also for NIS values (then ``dim`` is the
+        measurement dimension).
+    dim : int
+        Dimension of the state.
+    axis : int, optional
+        The runs axis (default 0).
+    confidence : float, optional
+        Probability of the bounds, default 0.95.
+
+    Returns
+    -------
+    ANEESResult
+        ``value`` (the ANEES per remaining index), ``lower``, ``upper``, ``inside``,
+        ``share_inside``, ``mean`` and ``verdict``.
+
+    Raises
+    ------
+    ValueError
+        If ``nees_values`` is empty along ``axis``, not finite or negative.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.metrics import anees
+    >>> rng = np.random.default_rng(0)
+    >>> values = rng.chisquare(4, size=(200, 50))   # a consistent 4-D estimator
+    >>> result = anees(values, dim=4)
+    >>> result.value.shape, result.verdict
+    ((50,), 'consistent')
+    """
+    values = as_float_array(nees_values, "nees_values")
+    if values.ndim == 0:
+        raise ValueError("nees_values must have a runs axis, got a scalar")
+    if not np.all(np.isfinite(values)) or np.any(values < 0):
+        raise ValueError("nees_values must be finite and non-negative")
+    axis = int(axis)
+    try:
+        runs = values.shape[axis]
+    except IndexError:
+        raise ValueError(f"axis {axis} is out of range for nees_values of shape "
+                         f"{values.shape}") from None
+    if runs < 1:
+        raise ValueError("nees_values has no runs along the runs axis")
+    lower, upper = chi2_bounds(dim, runs, confidence)
+    return ANEESResult(np.mean(values, axis=axis), lower, upper, int(dim), int(runs),
+                       float(confidence))
+
+
+def rmse(x_true, x_est, *, axis=0, components=None):
+    """Root mean square error over Monte Carlo runs.
+
+    ``sqrt(mean_runs(sum_components (x_est - x_true)^2))``: the root of the mean squared
+    Euclidean error of the chosen components (for instance the position).
+
+    Parameters
+    ----------
+    x_true, x_est : array_like, shape (..., n) or (..., n, 1)
+        True states and estimates (broadcast against each other).
+    axis : int or tuple of int or None, optional
+        Axes of the batch (not counting the state axis) averaged over: the runs (default
+        0); None averages over every batch axis.
+    components : sequence of int, optional
+        State components included (default all).
+
+    Returns
+    -------
+    ndarray or float
+        The RMSE at every remaining index.
+
+    Raises
+    ------
+    ValueError
+        If the shapes do not broadcast or a value is not finite.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.metrics import rmse
+    >>> errors = np.array([[3.0, 4.0], [0.0, 0.0]])     # two runs of a 2-D state
+    >>> float(rmse(np.zeros(2), errors))
+    3.5355339059327378
+    """
+    error = _as_vectors(x_est, "x_est") - _as_vectors(x_true, "x_true")
+    if not np.all(np.isfinite(error)):
+        raise ValueError("x_true and x_est must be finite")
+    if components is not None:
+        error = error[..., list(components)]
+    squared = np.sum(error**2, axis=-1)
+    if squared.ndim == 0:
+        return float(np.sqrt(squared))
+    result = np.sqrt(np.mean(squared, axis=axis))
+    return float(result) if np.ndim(result) == 0 else result
+
+
+@dataclass(frozen=True)
+class ConservativenessResult:
+    """Whether a covariance bounds the empirical error covariance (see
+    :func:`conservativeness`).
+
+    The parameters are also the attributes.
+
+    Parameters
+    ----------
+    eigenvalue : ndarray or float
+        Smallest generalised eigenvalue of ``(P, C)``, ``C`` the empirical second moment
+        of the errors: ``P >= C`` exactly when it is at least one.
+    lower, upper : ndarray or float
+        Confidence interval of the smallest generalised eigenvalue of ``P`` and the true
+        second moment.
+    samples : int
+        Number of independent error samples behind ``C``.
+    confidence : float
+        Probability of the interval (at least this much: it is a union bound).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.metrics import conservativeness
+    >>> errors = np.random.default_rng(1).standard_normal((500, 2))
+    >>> conservativeness(4.0 * np.eye(2), errors).verdict
+    'conservative'
+    """
+
+    eigenvalue: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    samples: int
+    confidence: float
+
+    @property
+    def verdict(self):
+        """``"conservative"`` (the whole interval >= 1), ``"overconfident"`` (<= 1) or
+        ``"inconclusive"``; an array of str for a batch.
+
+        Returns
+        -------
+        str or ndarray of str
+            The verdict.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from cifilter.metrics import conservativeness
+        >>> errors = np.random.default_rng(1).standard_normal((500, 2))
+        >>> conservativeness(0.25 * np.eye(2), errors).verdict
+        'overconfident'
+        """
+        verdict = np.where(np.asarray(self.lower) >= 1.0, "conservative",
+                           np.where(np.asarray(self.upper) <= 1.0, "overconfident",
+                                    "inconclusive"))
+        return str(verdict) if verdict.ndim == 0 else verdict
+
+
+@lru_cache(maxsize=64)
+def _white_wishart_extremes(dim, samples, confidence, draws, seed):
+    """Quantiles of the extreme eigenvalues of ``W_dim(samples, I) / samples``.
+
+    The ``(1 - confidence) / 2`` quantile of the smallest and the ``(1 + confidence) / 2``
+    quantile of the largest eigenvalue, by simulation (no closed form for general dim).
+    """
+    rng = np.random.default_rng(seed)
+    tail = (1.0 - confidence) / 2.0
+    smallest, largest = [], []
+    block = max(1, min(draws, 2_000_000 // (samples * dim)))
+    for start in range(0, draws, block):
+        count = min(block, draws - start)
+        Z = rng.standard_normal((count, samples, dim))
+        eig = np.linalg.eigvalsh(np.einsum("kni,knj->kij", Z, Z) / samples)
+        smallest.append(eig[:, 0])
+        largest.append(eig[:, -1])
+    return (float(np.quantile(np.concatenate(smallest), tail)),
+            float(np.quantile(np.concatenate(largest), 1.0 - tail)))
+
+
+def conservativeness(P, errors, *, axis=0, confidence=0.95, draws=4000, rng=0):
+    """Test whether ``P`` bounds the empirical error covariance: smallest generalised
+    eigenvalue with a confidence interval.
+
+    With ``C = mean(e e^T)`` over independent error samples (the second moment: a bias
+    counts as error), ``lambda = min_u (u^T P u) / (u^T C u)`` is the smallest generalised
+    eigenvalue of ``(P, C)``; ``P >= C`` exactly when ``lambda >= 1``. For Gaussian errors
+    ``N C`` is Wishart with ``N`` degrees of freedom around the true second moment
+    ``Sigma``, and for every direction ``u^T C u / u^T Sigma u`` lies between the extreme
+    eigenvalues of a white Wishart matrix ``W(N, I) / N``; with their simulated
+    ``(1 -+ confidence) / 2`` quantiles ``l_min``, ``l_max`` the interval
+    ``[lambda l_min, lambda l_max]`` contains the eigenvalue of ``(P, Sigma)`` with
+    probability at least ``confidence`` (a union bound over the two quantiles).
+
+    Parameters
+    ----------
+    P : array_like, shape (..., n, n)
+        The covariance under test (the same for every sample), symmetric positive
+        definite.
+    errors : array_like, shape (N, ..., n)
+        Independent error samples along ``axis`` (the Monte Carlo runs); the batch axes
+        broadcast against those of ``P``.
+    axis : int, optional
+        The samples axis of ``errors`` (default 0).
+    confidence : float, optional
+        Probability of the interval, default 0.95.
+    draws : int, optional
+        Simulated white Wishart matrices behind the quantiles (default 4000).
+    rng : int or None, optional
+        Seed of that simulation (default 0: the same inputs give the same interval).
+
+    Returns
+    -------
+    ConservativenessResult
+        ``eigenvalue``, ``lower``, ``upper`` (float or arrays of the batch shape),
+        ``samples``, ``confidence`` and ``verdict``.
+
+    Raises
+    ------
+    ValueError
+        If ``P`` is not positive definite, the shapes do not match, fewer than ``n``
+        samples are given or a value is not finite.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.metrics import conservativeness
+    >>> rng = np.random.default_rng(0)
+    >>> errors = rng.multivariate_normal([0, 0], [[2.0, 0.5], [0.5, 1.0]], size=2000)
+    >>> result = conservativeness([[2.0, 0.5], [0.5, 1.0]], errors)
+    >>> bool(result.lower < 1 < result.upper), result.verdict
+    (True, 'inconclusive')
+    """
+    P = as_float_array(P, "P")
+    errors = _as_vectors(errors, "errors")
+    if not np.all(np.isfinite(errors)):
+        raise ValueError("errors must be finite")
+    n = errors.shape[-1]
+    if P.ndim < 2 or P.shape[-2:] != (n, n):
+        raise ValueError(f"P must have shape (..., {n}, {n}) to match errors of length {n}, "
+                         f"got {P.shape}")
+    errors = np.moveaxis(errors, axis, 0)
+    samples = errors.shape[0]
+    if samples < n:
+        raise ValueError(f"at least {n} error samples are needed for a {n}-D covariance, "
+                         f"got {samples}")
+    confidence = check_scalar(confidence, "confidence", low=0, high=1, low_open=True,
+                              high_open=True)
+    draws = check_int(draws, "draws", low=100)
+    second_moment = np.einsum("k...i,k...j->...ij", errors, errors) / samples
+    L = cholesky(P, "P")
+    shape = np.broadcast_shapes(L.shape[:-2], second_moment.shape[:-2])
+    L = np.broadcast_to(L, shape + (n, n))
+    # lambda_min(P, C) = 1 / lambda_max(L^-1 C L^-T): no inverse of C (it may be singular)
+    half = solve_lower(L, np.broadcast_to(second_moment, shape + (n, n)))
+    whitened = solve_lower(L, np.swapaxes(half, -1, -2))
+    largest = np.linalg.eigvalsh(0.5 * (whitened + np.swapaxes(whitened, -1, -2)))[..., -1]
+    with np.errstate(divide="ignore"):
+        eigenvalue = np.where(largest > 0, 1.0 / np.maximum(largest, 1e-300), np.inf)
+    low, high = _white_wishart_extremes(n, samples, confidence, draws,
+                                        None if rng is None else int(rng))
+    result = [eigenvalue, eigenvalue * low, eigenvalue * high]
+    if eigenvalue.ndim == 0:
+        result = [float(r) for r in result]
+    return ConservativenessResult(*result, int(samples), float(confidence))

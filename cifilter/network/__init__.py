@@ -1,0 +1,54 @@
+"""Decentralised sensor networks: nodes that track one target and fuse their neighbours'
+estimates, feeding the result back into their filters.
+
+* :mod:`cifilter.network.graph`: :class:`Scenario` (target model, the nodes' sensors,
+  the graph) and the ready scenarios :func:`naveen_taylor` (six nodes, Naveen & Taylor,
+  Section V-B), :func:`ring`, :func:`chain` (Weng & Djurić's k nodes),
+  :func:`fully_connected` and :func:`two_tracks`;
+* :mod:`cifilter.network.simulate`: :func:`simulate_data` and :func:`run_network`,
+  vectorised over Monte Carlo runs and nodes, with feedback, exchange period, all-at-once
+  or sequential fusion, packet loss and a one-step delay; :func:`centralised`, the
+  reference;
+* :mod:`cifilter.network.study`: :func:`compare` (every registered rule on the same data)
+  and :class:`NetworkStudy`, the same as a study for :func:`cifilter.montecarlo.run`,
+  scored with :mod:`cifilter.metrics` by :func:`summarize`.
+"""
+
+from .graph import (
+    NAVEEN_TAYLOR_EDGES,
+    Scenario,
+    adjacency_matrix,
+    chain,
+    constant_velocity_model,
+    fully_connected,
+    get_scenario,
+    naveen_taylor,
+    ring,
+    scenario_names,
+    two_tracks,
+)
+from .simulate import NetworkData, NetworkTrack, centralised, run_network, simulate_data
+from .study import REFERENCES, NetworkStudy, compare, summarize
+
+__all__ = [
+    "NAVEEN_TAYLOR_EDGES",
+    "REFERENCES",
+    "NetworkData",
+    "NetworkStudy",
+    "NetworkTrack",
+    "Scenario",
+    "adjacency_matrix",
+    "centralised",
+    "chain",
+    "compare",
+    "constant_velocity_model",
+    "fully_connected",
+    "get_scenario",
+    "naveen_taylor",
+    "ring",
+    "run_network",
+    "scenario_names",
+    "simulate_data",
+    "summarize",
+    "two_tracks",
+]
