@@ -26,6 +26,7 @@ from ._partial_correlation import (
     relative_gap,
 )
 from ._validation import as_estimates, as_float_array, check_int, check_scalar, check_weights
+from ._linalg import cholesky
 from .bounds import correlation_bound
 from .result import FusionResult
 
@@ -233,27 +234,40 @@ def _partial_ci(est, rho=None, tol=1e-10, max_iter=100, *, solver="newton", delt
     return FusionResult(x, P, "pci", None, gains, info, weights)
 
 
-def _truth_rho(joint):
-    """Correlation coefficient bound, eq. (8), of the two halves of a joint covariance.
+def _truth_rho(joint, count=2):
+    """The smallest common correlation coefficient bound, eq. (21), of a joint covariance.
 
-    Used by the demo: the joint error covariance ``[[P_a, P_ab], [P_ab^T, P_b]]`` of two
-    tracks of equal dimension is known in a simulation, and the smallest admissible
-    ``rho`` is ``sigma_max(X^-1 P_ab Y^-T)``.
+    Used by simulations (the demo, :mod:`cifilter.network`), where the joint error covariance
+    of the ``count`` estimates is known. With ``D = blockdiag(P_1, ..., P_m) = L L^T``,
+    eq. (21) with ``rho_i = rho`` reads ``J - (1 - rho) D >= 0``, so the smallest ``rho`` is
+    ``1 - lambda_min(L^-1 J L^-T)``. For two estimates this is eq. (8),
+    ``sigma_max(X^-1 P_ab Y^-T)`` (the whitened joint has eigenvalues ``1 +- sigma``), which
+    is computed directly.
     """
     J = as_float_array(joint, "joint")
-    if J.ndim < 2 or J.shape[-1] != J.shape[-2] or J.shape[-1] % 2:
+    if J.ndim < 2 or J.shape[-1] != J.shape[-2] or J.shape[-1] % count:
         raise ValueError(
-            "the 'pci' truth hook expects the joint covariance of two estimates of equal "
-            f"dimension, (..., 2n, 2n); got shape {J.shape}"
+            f"the 'pci' truth hook expects the joint covariance of {count} estimates of equal "
+            f"dimension, (..., {count}n, {count}n); got shape {J.shape}"
         )
-    n = J.shape[-1] // 2
-    rho = correlation_bound(J[..., :n, :n], J[..., n:, n:], J[..., :n, n:])
-    # The bound of a valid joint covariance is at most 1; rounding may exceed it by ~1e-16.
-    return np.minimum(np.asarray(rho), 1.0)
+    n = J.shape[-1] // count
+    if count == 2:
+        rho = np.asarray(correlation_bound(J[..., :n, :n], J[..., n:, n:], J[..., :n, n:]))
+    else:
+        blocks = [J[..., i * n:(i + 1) * n, i * n:(i + 1) * n] for i in range(count)]
+        inverse_factors = [lower_inverse_stack(cholesky(block, "joint block")) for block in blocks]
+        W = np.zeros_like(J)
+        for i, Li in enumerate(inverse_factors):
+            W[..., i * n:(i + 1) * n, i * n:(i + 1) * n] = Li
+        whitened = W @ J @ np.swapaxes(W, -1, -2)
+        whitened = 0.5 * (whitened + np.swapaxes(whitened, -1, -2))
+        rho = 1.0 - np.linalg.eigvalsh(whitened)[..., 0]
+    # The bound of a valid joint covariance is in [0, 1]; rounding may leave it by ~1e-16.
+    return np.clip(rho, 0.0, 1.0)
 
 
-def _pci_truth_options(joint, rng):
-    return {"rho": _truth_rho(joint)[..., None]}
+def _pci_truth_options(joint, rng, count=2):
+    return {"rho": _truth_rho(joint, count)[..., None]}
 
 
 REGISTRATION = dict(

@@ -105,7 +105,7 @@ class FusionMethod:
                          else _option_signature(self.function, 2))
             object.__setattr__(self, "signature", signature)
 
-    def options_given_truth(self, joint, rng):
+    def options_given_truth(self, joint, rng, count=2):
         """Options for this rule in a simulation where the joint covariance is known.
 
         Parameters
@@ -114,6 +114,9 @@ class FusionMethod:
             True joint error covariance of the estimates to fuse.
         rng : numpy.random.Generator
             Randomness for rules that sample.
+        count : int, optional
+            The number N of estimates in ``joint`` (default 2); given to the hook when it
+            takes a ``count`` argument (hooks written for two estimates need not).
 
         Returns
         -------
@@ -126,7 +129,11 @@ class FusionMethod:
         >>> get_method("ci").options_given_truth(joint=None, rng=None)
         {}
         """
-        return {} if self.truth_options is None else dict(self.truth_options(joint, rng))
+        if self.truth_options is None:
+            return {}
+        if "count" in inspect.signature(self.truth_options).parameters:
+            return dict(self.truth_options(joint, rng, count=count))
+        return dict(self.truth_options(joint, rng))
 
 
 GUARANTEES = ("bound", "exact", "none")
@@ -151,7 +158,8 @@ def register_method(name, function, *, summary="", reference="", guarantee="none
         What the rule's covariance is (see :class:`FusionMethod`); default ``"none"``.
     truth_options : callable, optional
         ``truth_options(joint, rng) -> dict`` giving the options the rule needs when the
-        true joint covariance is known (used by the demo).
+        true joint covariance is known (used by the demo and :mod:`cifilter.network`); a hook
+        that also takes ``count`` receives the number of estimates in ``joint``.
     core : callable, optional
         ``core(estimates, **options) -> FusionResult`` on already validated estimates
         (see :class:`FusionMethod`); :func:`fuse` then calls it instead of ``function``.

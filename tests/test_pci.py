@@ -553,8 +553,35 @@ def test_truth_options_derive_rho_by_eq_8_batched():
     r = fuse([(xs[..., 0, :], Pa), (xs[..., 1, :], Pb)], method="pci", **options)
     for index in np.ndindex(4, 5):
         assert_psd(r.P[index] - fused_error_covariance(r.gains[index], joint[index]))
-    with pytest.raises(ValueError, match="two estimates of equal dimension"):
+    with pytest.raises(ValueError, match="2 estimates of equal dimension"):
         get_method("pci").options_given_truth(np.eye(5), rng=None)
+
+
+def test_truth_options_for_three_estimates_satisfy_eq_21_tightly_and_the_bound_holds():
+    # A random joint of three 2-D estimates: the common rho of eq. (21) is the smallest
+    # for which the block matrix with rho * P_i on the diagonal is positive semidefinite.
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(6, 6))
+    joint = A @ A.T + 0.1 * np.eye(6)
+    options = get_method("pci").options_given_truth(joint, rng=None, count=3)
+    rho = float(options["rho"][0])
+    assert 0.0 < rho < 1.0
+    D = np.zeros_like(joint)
+    for i in range(3):
+        D[2 * i:2 * i + 2, 2 * i:2 * i + 2] = joint[2 * i:2 * i + 2, 2 * i:2 * i + 2]
+    assert np.linalg.eigvalsh(joint - (1 - rho) * D)[0] > -1e-12  # eq. (21) holds ...
+    assert np.linalg.eigvalsh(joint - (1 - rho + 1e-6) * D)[0] < 0  # ... and only just
+    Ps = [joint[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(3)]
+    r = fuse([(np.zeros(2), P) for P in Ps], method="pci", **options)
+    assert_psd(r.P - fused_error_covariance(r.gains, joint))
+    # for two estimates eq. (8), which the hook uses, is the general form of eq. (21)
+    two = joint[:4, :4]
+    W = np.zeros((4, 4))
+    W[:2, :2] = np.linalg.inv(np.linalg.cholesky(two[:2, :2]))
+    W[2:, 2:] = np.linalg.inv(np.linalg.cholesky(two[2:, 2:]))
+    np.testing.assert_allclose(
+        get_method("pci").options_given_truth(two, rng=None, count=2)["rho"][0],
+        1 - np.linalg.eigvalsh(W @ two @ W.T)[0], rtol=1e-10)
 
 
 def test_demo_row_lies_between_ci_and_optimal_and_stays_conservative():

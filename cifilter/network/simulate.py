@@ -440,7 +440,7 @@ def _fuse_groups(record, groups, fused_x, fused_P, messages_x, messages_P, maps,
             flat = rows.reshape(r_idx.size, (c + 1) * n, size)
             joint = flat @ base[r_idx] @ np.swapaxes(flat, -1, -2)
             joint = 0.5 * (joint + np.swapaxes(joint, -1, -2))
-            call_options.update(record.options_given_truth(joint, rng))
+            call_options.update(record.options_given_truth(joint, rng, count=c + 1))
         result = fuse([(xs[:, s], Ps[:, s]) for s in range(c + 1)], method=record.name,
                       **call_options)
         fused_x[r_idx, i_idx] = np.asarray(result.x).reshape(r_idx.size, n)
