@@ -17,6 +17,7 @@ Theorem 5 bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i`` (see
 import numpy as np
 
 from ._information import checked_cholesky, lower_inverse_stack, squared_norms, weighted_fusion
+from ._linalg import cholesky
 from ._partial_correlation import (
     alternating_delta,
     check_rho,
@@ -26,7 +27,6 @@ from ._partial_correlation import (
     relative_gap,
 )
 from ._validation import as_estimates, as_float_array, check_int, check_scalar, check_weights
-from ._linalg import cholesky
 from .bounds import correlation_bound
 from .result import FusionResult
 
