@@ -1,0 +1,286 @@
+"""Covariance union: the smallest common upper bound of covariances, and the fused mean.
+
+For a candidate mean ``u`` every estimate ``(x_i, P_i)`` asks for ``U >= M_i`` with
+``M_i = P_i + (u - x_i)(u - x_i)^T`` (Uhlmann 2003). For two matrices ``A``, ``B`` the
+smallest such ``U`` has a closed form in both criteria (derivations:
+``docs/methods/union.rst``):
+
+* ``"det"``: with ``A = T T^T``, ``B = T diag(d) T^T``, ``U = T diag(max(1, d)) T^T``,
+  computed as ``A + B - T diag(min(1, d)) T^T`` from the factor of the whitening shared
+  with Ellipsoidal Intersection (:func:`cifilter._ellipsoidal.whiten`);
+* ``"trace"``: ``U = A + (B - A)_+ = (A + B)/2 + |B - A|/2`` (the positive part in an
+  orthonormal eigenbasis ``V`` of ``B - A``).
+
+Both are a per-direction maximum in coordinates ``y = T^-1 x`` (``T = V`` for the trace),
+and the mean that minimises the criterion satisfies a per-direction rule in the same
+coordinates: each coordinate of ``u`` is that of the mean of the dominating matrix, or lies
+between the two means where they tie. :func:`optimal_pair_mean` iterates that rule with a
+descent safeguard. Every function is batched over leading axes.
+"""
+
+from typing import NamedTuple
+
+import numpy as np
+
+from ._ellipsoidal import gram, whiten
+from ._linalg import cholesky, ill_conditioned, symmetrize
+from ._validation import Estimates
+
+__all__ = [
+    "CRITERIA", "PairUnion", "criterion_of", "mean_candidates_value", "optimal_pair_mean",
+    "pair_union", "sequential_union",
+]
+
+CRITERIA = ("trace", "det")
+"""Accepted criteria of :func:`cifilter.covariance_union`."""
+
+# Eigen-directions whose two variances agree to this relative precision are ties: there the
+# optimal mean may lie anywhere between the two means (the criterion has a kink).
+TIE_TOL = 1e-9
+# The optimal mean of two estimates is accepted when the certified relative gap of the trace
+# criterion is at most GAP_TOL, or (det) when the mean rule's residual is at most
+# RESIDUAL_TOL standard deviations of U: the optimum typically sits on a kink, approached
+# linearly from both sides, and a residual r leaves an excess of the criterion of order r^2.
+GAP_TOL = 1e-9
+RESIDUAL_TOL = 1e-6
+
+
+class PairUnion(NamedTuple):
+    """The union ``U`` of two matrices and the coordinates in which it is a maximum.
+
+    ``U = T diag(max(A_k, B_k)) T^T`` with ``A_k``, ``B_k`` the (diagonal) variances of the
+    two matrices in the coordinates ``y = T_inv x``; ``a``, ``b`` are the two means in these
+    coordinates and ``side`` (..., n) is +1 where ``B`` dominates, -1 where ``A`` does, 0
+    at ties.
+    """
+
+    U: np.ndarray
+    T: np.ndarray
+    T_inv: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    side: np.ndarray
+    scale: np.ndarray  # (..., n) standard deviation of U along each coordinate
+
+
+def _outer_updated(P, x, u):
+    """``M_i = P_i + (u - x_i)(u - x_i)^T`` for P (..., N, n, n), x (..., N, n), u (..., n)."""
+    d = u[..., None, :] - x
+    return symmetrize(P + d[..., :, None] * d[..., None, :])
+
+
+def pair_union(A, B, xa, xb, kind):
+    """The smallest upper bound of ``A`` and ``B`` (..., n, n) in ``kind`` (a :class:`PairUnion`).
+
+    ``xa``, ``xb`` (..., n) are mapped to the union's coordinates (for the mean rule).
+    """
+    if kind == "det":
+        P = np.stack([A, B], axis=-3)
+        L = cholesky(P, "the covariances about the fused mean")
+        est = Estimates(np.stack([xa, xb], axis=-2), P, L, False)
+        w = whiten(est, factor=True)
+        # T diag(max(1, d)) T^T = A + B - T diag(min(1, d)) T^T: at least (A + B)/2, so the
+        # difference loses nothing (as EI's common covariance, docs/methods/ei.rst)
+        U = symmetrize(w.S - gram(w.F))
+        log_d = np.log(w.d)
+        side = np.where(np.abs(log_d) <= TIE_TOL, 0, np.sign(log_d)).astype(int)
+        scale = np.sqrt(np.maximum(w.d, 1.0))
+        return PairUnion(U, w.T, w.T_inv, w.a, w.b, side, scale)
+    C = symmetrize(B - A)
+    c, V = np.linalg.eigh(C)
+    U = symmetrize(0.5 * (A + B) + (V * (0.5 * np.abs(c))[..., None, :]) @ V.swapaxes(-1, -2))
+    size = np.maximum(np.abs(np.diagonal(A, axis1=-2, axis2=-1)).max(axis=-1),
+                      np.abs(np.diagonal(B, axis1=-2, axis2=-1)).max(axis=-1))
+    side = np.where(np.abs(c) <= TIE_TOL * size[..., None], 0, np.sign(c)).astype(int)
+    V_t = V.swapaxes(-1, -2)
+    a = np.einsum("...ij,...j->...i", V_t, xa)
+    b = np.einsum("...ij,...j->...i", V_t, xb)
+    scale = np.sqrt(np.maximum(np.einsum("...ki,...kl,...li->...i", V, U, V), 0.0))
+    return PairUnion(U, V, V_t, a, b, side, scale)
+
+
+def criterion_of(U, kind):
+    """``trace(U)`` or ``log det U`` (..., ); IllConditionedError if ``U`` is not PD."""
+    if kind == "trace":
+        return np.trace(U, axis1=-2, axis2=-1)
+    L = cholesky(U, "the covariance union")
+    return 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
+
+
+def sequential_union(P, x, u, kind, order):
+    """A common upper bound of all ``M_i`` (N >= 2): pairwise unions in ``order``.
+
+    Each step's result bounds both of its arguments, so the last bounds every ``M_i``;
+    for N = 2 it is the smallest, for N > 2 a bound that need not be the smallest.
+    """
+    M = _outer_updated(P, x, u)
+    M = np.take_along_axis(M, order[..., :, None, None], axis=-3)
+    U = M[..., 0, :, :]
+    for i in range(1, M.shape[-3]):  # loop over the estimates, not over the batch
+        U = pair_union(U, M[..., i, :, :], u, u, kind).U
+    return U
+
+
+def mean_candidates_value(P, x, candidates, kind, order):
+    """Criterion of the union at each candidate mean (..., K, n) -> (..., K)."""
+    K = candidates.shape[-2]
+    Pk = np.broadcast_to(P[..., None, :, :, :], P.shape[:-3] + (K,) + P.shape[-3:])
+    xk = np.broadcast_to(x[..., None, :, :], x.shape[:-2] + (K,) + x.shape[-2:])
+    ok = np.broadcast_to(order[..., None, :], order.shape[:-1] + (K, order.shape[-1]))
+    return criterion_of(sequential_union(Pk, xk, candidates, kind, ok), kind)
+
+
+def _mean_rule(pair, u):
+    """The per-direction mean rule at ``u``: target mean and the stationarity residual.
+
+    In the union's coordinates the target takes the coordinate of the dominating mean and,
+    at ties, the current coordinate clipped to the interval between the two means. ``u`` is
+    stationary exactly when it is its own target; the residual is measured in standard
+    deviations of ``U`` (dimensionless).
+    """
+    y = np.einsum("...ij,...j->...i", pair.T_inv, u)
+    low, high = np.minimum(pair.a, pair.b), np.maximum(pair.a, pair.b)
+    target = np.where(pair.side > 0, pair.b,
+                      np.where(pair.side < 0, pair.a, np.clip(y, low, high)))
+    residual = np.abs(target - y) / pair.scale
+    u_target = np.einsum("...ij,...j->...i", pair.T, target)
+    return u_target, target, residual.max(axis=-1)
+
+
+def trace_dual_bound(pair, P1, P2):
+    """A certified lower bound of the smallest ``trace(U)`` over all means (two estimates).
+
+    For any ``Z`` with ``0 <= Z <= I`` the Lagrange dual of the joint convex problem
+    ``min trace U`` s.t. ``U >= M_i(u)`` (multipliers ``I - Z`` and ``Z``) is
+    ``q(Z) = tr P_1 + tr(Z (P_2 - P_1)) + dx^T (Z - Z^2) dx``, ``dx = x_2 - x_1``
+    (``docs/methods/union.rst``, "The trace criterion is convex"). With ``Z = V diag(s) V^T``
+    in the union's eigenbasis ``V`` it is separable,
+    ``q = sum_k (1 - s_k) p1_k + s_k p2_k + s_k (1 - s_k) beta_k^2``, and the best ``s_k`` in
+    [0, 1] is closed form; at the optimum the bound is tight.
+    """
+    beta = pair.b - pair.a
+    V = pair.T
+    p1 = np.einsum("...ki,...kl,...li->...i", V, P1, V)
+    p2 = np.einsum("...ki,...kl,...li->...i", V, P2, V)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(beta != 0, (p2 - p1 + beta**2) / (2.0 * beta**2),
+                     np.where(p2 > p1, 1.0, 0.0))
+    s = np.clip(s, 0.0, 1.0)
+    return ((1.0 - s) * p1 + s * p2 + s * (1.0 - s) * beta**2).sum(axis=-1)
+
+
+def _step_candidates(P, x, u, step):
+    """Step lengths to try along ``u + t step``: halvings and the kinks in (0, 1].
+
+    Along the line ``B - A`` is affine in ``t`` (the quadratic terms cancel), ``C(t) = C_0 +
+    t C_1`` with ``C_1 = -(step dx^T + dx step^T)`` of rank two (``dx = x_2 - x_1``), so the
+    criterion has at most two kinks on the line: where ``C(t)`` is singular,
+    ``t = -1/lambda`` for the eigenvalues ``lambda`` of the 2 x 2 matrix ``J W^T C_0^-1 W``
+    (``W = [step, dx]``, ``J = -[[0, 1], [1, 0]]``). Optima sit on kinks; trying them
+    lands on the kink exactly instead of approaching it by halving.
+    """
+    halvings = 0.5 ** np.arange(16.0)
+    d1, d2 = u - x[:, 0], u - x[:, 1]
+    C0 = symmetrize(P[:, 1] - P[:, 0] + d2[:, :, None] * d2[:, None, :]
+                    - d1[:, :, None] * d1[:, None, :])
+    W = np.stack([step, x[:, 1] - x[:, 0]], axis=-1)
+    kinks = np.full((u.shape[0], 2), 0.5)
+    try:
+        G = W.swapaxes(-1, -2) @ np.linalg.solve(C0, W)
+        lam = np.linalg.eigvals(-G[:, ::-1, :])  # J G with J = -[[0, 1], [1, 0]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where((np.abs(lam.imag) <= 1e-12 * np.abs(lam)) & (lam.real != 0),
+                         -1.0 / lam.real, 0.5)
+        kinks = np.where((t > 0) & (t <= 1), t, 0.5)
+    except np.linalg.LinAlgError:  # a singular C_0 (u on a kink already): halvings only
+        pass
+    return np.concatenate([np.broadcast_to(halvings, (u.shape[0], halvings.size)), kinks],
+                          axis=-1)
+
+
+def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_TOL,
+                      max_iter=100):
+    """The mean minimising the criterion of the union of two estimates, batched.
+
+    Iterates ``u <- u + t (Phi(u) - u)`` with ``Phi`` the per-direction mean rule
+    (:func:`_mean_rule`) and the best step ``t`` among the candidates. Returns
+    ``(u, pair, value, iterations, converged, gap)``; ``gap`` is the certified relative
+    gap of the trace criterion (NaN for ``"det"``, whose joint problem is not convex; there
+    ``converged`` means stationary: residual of the mean rule at most ``residual_tol``
+    standard deviations of ``U``). Candidate steps: halvings and the kinks of the line
+    (:func:`_step_candidates`); a problem stops when no candidate decreases the criterion.
+    """
+    batch = x.shape[:-2]
+    flat_P = P.reshape((-1,) + P.shape[-3:])
+    flat_x = x.reshape((-1,) + x.shape[-2:])
+    u = start.reshape((-1, x.shape[-1])).copy()
+    size = u.shape[0]
+    iterations = np.zeros(size, dtype=int)
+    done = np.zeros(size, dtype=bool)
+    converged = np.zeros(size, dtype=bool)
+    gap = np.full(size, np.nan)
+
+    def evaluate(u_rows, rows):
+        M = _outer_updated(flat_P[rows], flat_x[rows], u_rows)
+        pair = pair_union(M[:, 0], M[:, 1], flat_x[rows, 0], flat_x[rows, 1], kind)
+        return pair, criterion_of(pair.U, kind)
+
+    everything = np.arange(size)
+    pair, value = evaluate(u, everything)
+    for _ in range(max_iter):
+        rows = np.flatnonzero(~done)
+        if rows.size == 0:
+            break
+        pair, value_rows = evaluate(u[rows], rows)
+        u_target, _, residual = _mean_rule(pair, u[rows])
+        if kind == "trace":
+            lower = trace_dual_bound(pair, flat_P[rows, 0], flat_P[rows, 1])
+            g = np.maximum(value_rows - lower, 0.0) / value_rows
+            gap[rows] = g
+            ok = g <= tol
+        else:
+            ok = residual <= residual_tol
+        converged[rows[ok]] = True
+        done[rows[ok]] = True
+        moving = rows[~ok]
+        if moving.size == 0:
+            break
+        step = (u_target - u[rows])[~ok]
+        base, current = value_rows[~ok], u[moving]
+        ts = _step_candidates(flat_P[moving], flat_x[moving], current, step)
+        K = ts.shape[-1]
+        candidate = current[:, None, :] + ts[..., None] * step[:, None, :]
+        _, trial_value = evaluate(candidate.reshape(-1, candidate.shape[-1]),
+                                  np.repeat(moving, K))
+        trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf)
+        trial_value = trial_value.reshape(-1, K)
+        pick = np.argmin(trial_value, axis=-1)
+        best_value = np.take_along_axis(trial_value, pick[:, None], axis=-1)[:, 0]
+        accepted = best_value < base
+        chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
+        u[moving[accepted]] = chosen[accepted]
+        iterations[moving] += 1
+        done[moving[~accepted]] = True  # no decrease left above rounding: stalled
+    pair, value = evaluate(u, everything)
+    _, _, residual = _mean_rule(pair, u)
+    if kind == "trace":
+        lower = trace_dual_bound(pair, flat_P[:, 0], flat_P[:, 1])
+        gap = np.maximum(value - lower, 0.0) / value
+        converged = gap <= tol
+    else:
+        converged = residual <= residual_tol
+    shaped = [a.reshape(batch + a.shape[1:]) for a in (u, value, iterations, converged, gap)]
+    pair = PairUnion(*[a.reshape(batch + a.shape[1:]) for a in pair])
+    return shaped[0], pair, shaped[1], shaped[2], shaped[3], shaped[4]
+
+
+def check_union(U, name="the covariance union"):
+    """Raise IllConditionedError unless every ``U`` is finite and positive definite."""
+    good = np.isfinite(U).all(axis=(-2, -1))
+    if good.all():
+        try:
+            np.linalg.cholesky(U)
+            return
+        except np.linalg.LinAlgError:
+            pass
+    raise ill_conditioned(name, np.inf, "is not numerically positive definite")
