@@ -13,6 +13,10 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
   (``"pcei"``), which estimate the common information (Sijs & Lazar; Naveen & Taylor);
 * :func:`bayesian_fusion` (``"bayes"``), the Monte Carlo MMSE fusion under a Wishart prior
   (Weng & Djurić), and its sampler :func:`sample_joint_covariances`;
+* :func:`covariance_union` (``"cu"``), :func:`largest_ellipsoid` (``"le"``) and
+  :func:`sampling_ci` (``"sci"``): covariance union for inconsistent tracks (Uhlmann
+  2003), safe fusion (Benaskeur 2002; Nygårds et al. 2016) and sampling CI (Tian,
+  Bar-Shalom & Chen 2010);
 * every rule is reachable through :func:`fuse` and the registry
   (:func:`register_method`, :func:`available_methods`).
 """
@@ -24,11 +28,14 @@ from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
 from .ei import ellipsoidal_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
 from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
+from .largest_ellipsoid import largest_ellipsoid
 from .optimal import naive_fusion, optimal_fusion
 from .pci import partial_ci
 from .pcei import pc_ellipsoidal_intersection
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
+from .sampling_ci import sampling_ci
+from .union import covariance_union
 
 __version__ = "0.1.0"
 
@@ -45,10 +52,12 @@ __all__ = [
     "bayesian_fusion",
     "ci_weights",
     "covariance_intersection",
+    "covariance_union",
     "ellipsoidal_intersection",
     "fuse",
     "get_method",
     "horizon_study",
+    "largest_ellipsoid",
     "mahalanobis_sq",
     "naive_fusion",
     "optimal_fusion",
@@ -58,5 +67,6 @@ __all__ = [
     "propagate_bound",
     "register_method",
     "sample_joint_covariances",
+    "sampling_ci",
     "steady_state_covariance",
 ]

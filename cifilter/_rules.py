@@ -6,7 +6,7 @@ validated estimates, guarantee, truth hook); rules that can choose their weights
 bound after future filtering get their ``horizon`` hook from :mod:`cifilter.horizon`.
 """
 
-from . import bayes, ci, ei, optimal, pcei, pci
+from . import bayes, ci, ei, largest_ellipsoid, optimal, pcei, pci, sampling_ci, union
 from .horizon import ci_horizon_options, pci_horizon_options
 from .registry import register_method
 
@@ -18,6 +18,9 @@ BUILT_IN = (
     ei.REGISTRATION,
     pcei.REGISTRATION,
     bayes.REGISTRATION,
+    union.REGISTRATION,
+    largest_ellipsoid.REGISTRATION,
+    sampling_ci.REGISTRATION,
 )
 
 for _registration in BUILT_IN:

@@ -28,7 +28,7 @@ from ._validation import Estimates
 
 __all__ = [
     "CRITERIA", "PairUnion", "criterion_of", "mean_candidates_value", "optimal_pair_mean",
-    "pair_union", "sequential_union",
+    "pair_union", "separable_start", "sequential_union",
 ]
 
 CRITERIA = ("trace", "det")
@@ -61,6 +61,8 @@ class PairUnion(NamedTuple):
     b: np.ndarray
     side: np.ndarray
     scale: np.ndarray  # (..., n) standard deviation of U along each coordinate
+    var_a: np.ndarray  # (..., n) variance of A along each coordinate
+    var_b: np.ndarray  # (..., n) variance of B along each coordinate
 
 
 def _outer_updated(P, x, u):
@@ -85,7 +87,7 @@ def pair_union(A, B, xa, xb, kind):
         log_d = np.log(w.d)
         side = np.where(np.abs(log_d) <= TIE_TOL, 0, np.sign(log_d)).astype(int)
         scale = np.sqrt(np.maximum(w.d, 1.0))
-        return PairUnion(U, w.T, w.T_inv, w.a, w.b, side, scale)
+        return PairUnion(U, w.T, w.T_inv, w.a, w.b, side, scale, np.ones_like(w.d), w.d)
     C = symmetrize(B - A)
     c, V = np.linalg.eigh(C)
     U = symmetrize(0.5 * (A + B) + (V * (0.5 * np.abs(c))[..., None, :]) @ V.swapaxes(-1, -2))
@@ -96,7 +98,8 @@ def pair_union(A, B, xa, xb, kind):
     a = np.einsum("...ij,...j->...i", V_t, xa)
     b = np.einsum("...ij,...j->...i", V_t, xb)
     scale = np.sqrt(np.maximum(np.einsum("...ki,...kl,...li->...i", V, U, V), 0.0))
-    return PairUnion(U, V, V_t, a, b, side, scale)
+    var_a = np.einsum("...ki,...kl,...li->...i", V, A, V)
+    return PairUnion(U, V, V_t, a, b, side, scale, var_a, var_a + c)
 
 
 def criterion_of(U, kind):
@@ -128,6 +131,21 @@ def mean_candidates_value(P, x, candidates, kind, order):
     xk = np.broadcast_to(x[..., None, :, :], x.shape[:-2] + (K,) + x.shape[-2:])
     ok = np.broadcast_to(order[..., None, :], order.shape[:-1] + (K, order.shape[-1]))
     return criterion_of(sequential_union(Pk, xk, candidates, kind, ok), kind)
+
+
+def separable_start(P, x, kind):
+    """A starting mean for two estimates: the per-direction optimum in the union's
+    coordinates at equal means (exact when the means agree, and a good start otherwise).
+
+    In each coordinate ``max(p_a + (y - a)^2, p_b + (y - b)^2)`` is smallest at the vertex of
+    the dominating parabola, or where the two cross.
+    """
+    pair = pair_union(P[..., 0, :, :], P[..., 1, :, :], x[..., 0, :], x[..., 1, :], kind)
+    a, b, pa, pb = pair.a, pair.b, pair.var_a, pair.var_b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cross = np.where(a != b, (pa - pb + a**2 - b**2) / (2.0 * (a - b)), a)
+    y = np.where(pa >= pb + (a - b) ** 2, a, np.where(pb >= pa + (a - b) ** 2, b, cross))
+    return np.einsum("...ij,...j->...i", pair.T, y)
 
 
 def _mean_rule(pair, u):
@@ -170,7 +188,7 @@ def trace_dual_bound(pair, P1, P2):
 
 
 def _step_candidates(P, x, u, step):
-    """Step lengths to try along ``u + t step``: halvings and the kinks in (0, 1].
+    """Step lengths to try first along ``u + t step``: 1 and the kinks in (0, 1].
 
     Along the line ``B - A`` is affine in ``t`` (the quadratic terms cancel), ``C(t) = C_0 +
     t C_1`` with ``C_1 = -(step dx^T + dx step^T)`` of rank two (``dx = x_2 - x_1``), so the
@@ -179,23 +197,21 @@ def _step_candidates(P, x, u, step):
     (``W = [step, dx]``, ``J = -[[0, 1], [1, 0]]``). Optima sit on kinks; trying them
     lands on the kink exactly instead of approaching it by halving.
     """
-    halvings = 0.5 ** np.arange(16.0)
     d1, d2 = u - x[:, 0], u - x[:, 1]
     C0 = symmetrize(P[:, 1] - P[:, 0] + d2[:, :, None] * d2[:, None, :]
                     - d1[:, :, None] * d1[:, None, :])
     W = np.stack([step, x[:, 1] - x[:, 0]], axis=-1)
-    kinks = np.full((u.shape[0], 2), 0.5)
+    kinks = np.full((u.shape[0], 2), 1.0)
     try:
         G = W.swapaxes(-1, -2) @ np.linalg.solve(C0, W)
         lam = np.linalg.eigvals(-G[:, ::-1, :])  # J G with J = -[[0, 1], [1, 0]]
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where((np.abs(lam.imag) <= 1e-12 * np.abs(lam)) & (lam.real != 0),
-                         -1.0 / lam.real, 0.5)
-        kinks = np.where((t > 0) & (t <= 1), t, 0.5)
+                         -1.0 / lam.real, 1.0)
+        kinks = np.where((t > 0) & (t <= 1), t, 1.0)
     except np.linalg.LinAlgError:  # a singular C_0 (u on a kink already): halvings only
         pass
-    return np.concatenate([np.broadcast_to(halvings, (u.shape[0], halvings.size)), kinks],
-                          axis=-1)
+    return np.concatenate([np.ones((u.shape[0], 1)), kinks], axis=-1)
 
 
 def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_TOL,
@@ -247,18 +263,29 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
             break
         step = (u_target - u[rows])[~ok]
         base, current = value_rows[~ok], u[moving]
+        # the full step and the kinks of the line first; halvings only where they fail
         ts = _step_candidates(flat_P[moving], flat_x[moving], current, step)
         K = ts.shape[-1]
         candidate = current[:, None, :] + ts[..., None] * step[:, None, :]
         _, trial_value = evaluate(candidate.reshape(-1, candidate.shape[-1]),
                                   np.repeat(moving, K))
-        trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf)
-        trial_value = trial_value.reshape(-1, K)
+        trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf).reshape(-1, K)
         pick = np.argmin(trial_value, axis=-1)
         best_value = np.take_along_axis(trial_value, pick[:, None], axis=-1)[:, 0]
         accepted = best_value < base
         chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
         u[moving[accepted]] = chosen[accepted]
+        t = 0.5
+        for _ in range(40):
+            trial = np.flatnonzero(~accepted)
+            if trial.size == 0:
+                break
+            candidate = current[trial] + t * step[trial]
+            _, trial_value = evaluate(candidate, moving[trial])
+            better = trial_value < base[trial]
+            u[moving[trial[better]]] = candidate[better]
+            accepted[trial[better]] = True
+            t *= 0.5
         iterations[moving] += 1
         done[moving[~accepted]] = True  # no decrease left above rounding: stalled
     pair, value = evaluate(u, everything)

@@ -18,6 +18,7 @@ from ._union import (
     criterion_of,
     mean_candidates_value,
     optimal_pair_mean,
+    separable_start,
     sequential_union,
 )
 from ._validation import as_estimates, as_float_array, check_finite, restore_style, vector_style
@@ -158,7 +159,10 @@ def _covariance_union(est, criterion="trace", mean=None):
         u = np.broadcast_to(u, batch + u.shape[-1:])
         info["rule"] = "fixed"
     else:
-        candidates = np.concatenate([x, x.mean(axis=-2, keepdims=True)], axis=-2)
+        candidates = [x, x.mean(axis=-2, keepdims=True)]
+        if count == 2:
+            candidates.append(separable_start(P, x, kind)[..., None, :])
+        candidates = np.concatenate(candidates, axis=-2)
         values = mean_candidates_value(P, x, candidates, kind, order)
         best = np.argmin(values, axis=-1)
         u = np.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
