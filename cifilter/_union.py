@@ -142,7 +142,7 @@ def separable_start(P, x, kind):
     """
     pair = pair_union(P[..., 0, :, :], P[..., 1, :, :], x[..., 0, :], x[..., 1, :], kind)
     a, b, pa, pb = pair.a, pair.b, pair.var_a, pair.var_b
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         cross = np.where(a != b, (pa - pb + a**2 - b**2) / (2.0 * (a - b)), a)
     y = np.where(pa >= pb + (a - b) ** 2, a, np.where(pb >= pa + (a - b) ** 2, b, cross))
     return np.einsum("...ij,...j->...i", pair.T, y)
@@ -180,7 +180,7 @@ def trace_dual_bound(pair, P1, P2):
     V = pair.T
     p1 = np.einsum("...ki,...kl,...li->...i", V, P1, V)
     p2 = np.einsum("...ki,...kl,...li->...i", V, P2, V)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         s = np.where(beta != 0, (p2 - p1 + beta**2) / (2.0 * beta**2),
                      np.where(p2 > p1, 1.0, 0.0))
     s = np.clip(s, 0.0, 1.0)
