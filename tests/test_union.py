@@ -124,8 +124,10 @@ def test_pairwise_union_is_the_smallest_bound(criterion, seed):
                          constraints=[{"type": "ineq", "fun": psd, "args": (M,)}
                                       for M in (A, B)],
                          options={"ftol": 1e-14, "maxiter": 500})
-    assert min(smallest(reference.x, A), smallest(reference.x, B)) > -1e-8
-    assert f([U[0, 0], U[0, 1], U[1, 1]]) <= reference.fun + 1e-7 * abs(reference.fun)
+    # the reference is feasible to SLSQP's tolerance (a determinant constraint of order
+    # 1e-8 lets an eigenvalue reach -1e-7), so it may undercut the optimum by that much
+    assert min(smallest(reference.x, A), smallest(reference.x, B)) > -1e-6
+    assert f([U[0, 0], U[0, 1], U[1, 1]]) <= reference.fun + 1e-6 * abs(reference.fun)
     assert np.linalg.eigvalsh(U - A).min() > -1e-12 and np.linalg.eigvalsh(U - B).min() > -1e-12
 
 
