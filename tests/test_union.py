@@ -23,7 +23,7 @@ EPS = np.finfo(float).eps
 def covered(x, P, xs, Ps):
     """Smallest eigenvalue of ``P - P_i - (x - x_i)(x - x_i)^T`` over the inputs relative to
     ``||P||``, and that of ``L_i^-1 P L_i^-T - I`` (``M_i = L_i L_i^T``, the shortfall in the
-    input's own metric) relative to ``eps ||L_i^-1 P L_i^-T||``, the rounding of ``P``
+    input's own metric) relative to ``eps ||P|| / lambda_min(M_i)``, the rounding of ``P``
     seen in that metric."""
     worst_abs, worst_rel = np.inf, np.inf
     for xi, Pi in zip(xs, Ps):
@@ -31,9 +31,9 @@ def covered(x, P, xs, Ps):
         M = Pi + np.outer(d, d)
         worst_abs = min(worst_abs, np.linalg.eigvalsh(P - M).min() / np.linalg.norm(P, 2))
         Li = np.linalg.inv(np.linalg.cholesky(M))
-        S = Li @ P @ Li.T
-        rel = np.linalg.eigvalsh(S).min() - 1.0
-        worst_rel = min(worst_rel, rel / (EPS * np.linalg.norm(S, 2)))
+        rel = np.linalg.eigvalsh(Li @ P @ Li.T).min() - 1.0
+        rounding = EPS * np.linalg.norm(P, 2) / np.linalg.eigvalsh(M).min()
+        worst_rel = min(worst_rel, rel / rounding)
     return worst_abs, worst_rel
 
 
