@@ -214,6 +214,64 @@ def _step_candidates(P, x, u, step):
     return np.concatenate([np.ones((u.shape[0], 1)), kinks], axis=-1)
 
 
+def trace_newton_steps(P, x, u):
+    """Two Newton steps for the trace criterion of two estimates (rows of a batch).
+
+    ``g(u) = const + (|u - x_1|^2 + |u - x_2|^2)/2 + ||C(u)||_* / 2`` with
+    ``C(u) = M_2 - M_1``, whose derivative is ``-(delta dx^T + dx delta^T)``: the gradient
+    and the Hessian of the nuclear norm follow from first- and second-order eigenvalue
+    perturbation (``docs/methods/union.rst``, "Newton steps"). Returns the smooth Newton
+    step (valid away from kinks) and the Newton step of the KKT system that keeps the
+    smallest eigenvalue ``c_k`` at zero (the optimum on a kink, with multiplier ``lambda``
+    in [-1/2, 1/2]); both are candidates, accepted only if they decrease ``g``.
+    """
+    n = u.shape[-1]
+    d1, d2 = u - x[:, 0], u - x[:, 1]
+    C = symmetrize(P[:, 1] - P[:, 0] + d2[:, :, None] * d2[:, None, :]
+                   - d1[:, :, None] * d1[:, None, :])
+    c, V = np.linalg.eigh(C)
+    beta = np.einsum("rij,ri->rj", V, x[:, 1] - x[:, 0])
+    sign = np.sign(c)
+    half = 0.5 * sign
+    k = np.argmin(np.abs(c), axis=-1)
+    is_k = np.arange(n) == k[:, None]
+    # g_jl = -(beta_l v_j + beta_j v_l), (rows, j, l, n)
+    G = -(beta[:, None, :, None] * V.swapaxes(-1, -2)[:, :, None, :]
+          + beta[:, :, None, None] * V.swapaxes(-1, -2)[:, None, :, :])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pair = (half[:, :, None] - half[:, None, :]) / (c[:, :, None] - c[:, None, :])
+    off = ~np.eye(n, dtype=bool)
+    pair = np.where(off & np.isfinite(pair), pair, 0.0)
+    grad_smooth = 2.0 * u - x[:, 0] - x[:, 1]
+    eye = np.broadcast_to(np.eye(n), (u.shape[0], n, n))
+    # smooth Newton: all eigenvalues with their signs (sum over pairs j < l, both orders / 2)
+    H = 2.0 * eye + np.einsum("rjl,rjla,rjlb->rab", pair, G, G)
+    grad = grad_smooth - np.einsum("rj,rj,rij->ri", sign, beta, V)
+    newton = -np.linalg.solve(H, grad[..., None])[..., 0]
+    # KKT on the kink c_k = 0: c_k's own term replaced by lambda c_k
+    a = -2.0 * np.take_along_axis(beta, k[:, None], 1) * np.take_along_axis(
+        V, k[:, None, None], 2)[..., 0]
+    grad_s = grad_smooth - np.einsum("rj,rj,rij->ri", np.where(is_k, 0.0, sign), beta, V)
+    lam = np.clip(-np.einsum("ri,ri->r", a, grad_s)
+                  / np.maximum(np.einsum("ri,ri->r", a, a), 1e-300), -0.5, 0.5)
+    c_k = np.take_along_axis(c, k[:, None], 1)[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_k = (np.where(is_k, 0.0, half) - lam[:, None]) / (c - c_k[:, None])
+    to_k = np.where(is_k | ~np.isfinite(to_k), 0.0, to_k)
+    rest = np.where(is_k[:, :, None] | is_k[:, None, :], 0.0, pair)
+    G_k = np.take_along_axis(G, k[:, None, None, None], 2)[:, :, 0, :]  # g_jk (rows, j, n)
+    H_k = (2.0 * eye + np.einsum("rjl,rjla,rjlb->rab", rest, G, G)
+           + 2.0 * np.einsum("rj,rja,rjb->rab", to_k, G_k, G_k))
+    K = np.zeros((u.shape[0], n + 1, n + 1))
+    K[:, :n, :n], K[:, :n, n], K[:, n, :n] = H_k, a, a
+    rhs = -np.concatenate([grad_s + lam[:, None] * a, c_k[:, None]], axis=-1)
+    try:
+        kink = np.linalg.solve(K, rhs[..., None])[:, :n, 0]
+    except np.linalg.LinAlgError:
+        kink = np.zeros_like(u)
+    return newton, kink
+
+
 def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_TOL,
                       max_iter=100):
     """The mean minimising the criterion of the union of two estimates, batched.
@@ -275,6 +333,20 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
         accepted = best_value < base
         chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
         u[moving[accepted]] = chosen[accepted]
+        if kind == "trace":  # Newton steps: quadratic convergence near the optimum
+            newton, kink = trace_newton_steps(flat_P[moving], flat_x[moving], current)
+            candidate = np.stack([current + newton, current + kink], axis=1)
+            candidate = np.where(np.isfinite(candidate), candidate, current[:, None, :])
+            _, trial_value = evaluate(candidate.reshape(-1, candidate.shape[-1]),
+                                      np.repeat(moving, 2))
+            trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf)
+            trial_value = trial_value.reshape(-1, 2)
+            pick = np.argmin(trial_value, axis=-1)
+            newton_value = np.take_along_axis(trial_value, pick[:, None], axis=-1)[:, 0]
+            better = newton_value < np.where(accepted, best_value, base)
+            chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
+            u[moving[better]] = chosen[better]
+            accepted |= better
         t = 0.5
         for _ in range(40):
             trial = np.flatnonzero(~accepted)
