@@ -238,7 +238,7 @@ def trace_newton_steps(P, x, u):
     # g_jl = -(beta_l v_j + beta_j v_l), (rows, j, l, n)
     G = -(beta[:, None, :, None] * V.swapaxes(-1, -2)[:, :, None, :]
           + beta[:, :, None, None] * V.swapaxes(-1, -2)[:, None, :, :])
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         pair = (half[:, :, None] - half[:, None, :]) / (c[:, :, None] - c[:, None, :])
     off = ~np.eye(n, dtype=bool)
     pair = np.where(off & np.isfinite(pair), pair, 0.0)
@@ -247,7 +247,7 @@ def trace_newton_steps(P, x, u):
     # smooth Newton: all eigenvalues with their signs (sum over pairs j < l, both orders / 2)
     H = 2.0 * eye + np.einsum("rjl,rjla,rjlb->rab", pair, G, G)
     grad = grad_smooth - np.einsum("rj,rj,rij->ri", sign, beta, V)
-    newton = -np.linalg.solve(H, grad[..., None])[..., 0]
+    newton = -_solve(H, grad)
     # KKT on the kink c_k = 0: c_k's own term replaced by lambda c_k
     a = -2.0 * np.take_along_axis(beta, k[:, None], 1) * np.take_along_axis(
         V, k[:, None, None], 2)[..., 0]
@@ -255,7 +255,7 @@ def trace_newton_steps(P, x, u):
     lam = np.clip(-np.einsum("ri,ri->r", a, grad_s)
                   / np.maximum(np.einsum("ri,ri->r", a, a), 1e-300), -0.5, 0.5)
     c_k = np.take_along_axis(c, k[:, None], 1)[:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         to_k = (np.where(is_k, 0.0, half) - lam[:, None]) / (c - c_k[:, None])
     to_k = np.where(is_k | ~np.isfinite(to_k), 0.0, to_k)
     rest = np.where(is_k[:, :, None] | is_k[:, None, :], 0.0, pair)
@@ -265,11 +265,21 @@ def trace_newton_steps(P, x, u):
     K = np.zeros((u.shape[0], n + 1, n + 1))
     K[:, :n, :n], K[:, :n, n], K[:, n, :n] = H_k, a, a
     rhs = -np.concatenate([grad_s + lam[:, None] * a, c_k[:, None]], axis=-1)
-    try:
-        kink = np.linalg.solve(K, rhs[..., None])[:, :n, 0]
-    except np.linalg.LinAlgError:
-        kink = np.zeros_like(u)
+    kink = _solve(K, rhs)[:, :n]
     return newton, kink
+
+
+def _solve(M, b):
+    """Solve ``M x = b`` for a stack; a stack with a singular member is solved by least
+    squares (pseudo-inverse) instead, so that one degenerate problem (equal eigenvalues of
+    opposite sign at zero) gives a finite step for every problem rather than an error."""
+    with np.errstate(all="ignore"):
+        M = np.where(np.isfinite(M), M, 0.0)
+        b = np.where(np.isfinite(b), b, 0.0)
+        try:
+            return np.linalg.solve(M, b[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            return np.einsum("...ij,...j->...i", np.linalg.pinv(M), b)
 
 
 def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_TOL,

@@ -267,3 +267,19 @@ def test_bad_estimates():
         covariance_union([np.zeros(2)], [np.eye(2)])
     with pytest.raises(ValueError, match="positive definite"):
         covariance_union([np.zeros(2)] * 2, [np.eye(2), -np.eye(2)])
+
+
+@pytest.mark.parametrize("criterion", ["trace", "det"])
+def test_degenerate_problems_converge_without_error(criterion):
+    """Equal covariances (exactly zero eigenvalues of M_2 - M_1 besides the rank-two offset
+    part), equal estimates, and a batch mixing them with regular problems."""
+    e1 = np.array([1.0, 0.0, 0.0])
+    xs = np.array([[np.zeros(3), e1], [np.zeros(3), np.zeros(3)], [np.zeros(3), 3 * e1]])
+    Ps = np.array([[np.eye(3), np.eye(3)], [np.eye(3), np.eye(3)],
+                   [np.eye(3), np.diag([1.0, 2.0, 3.0])]])
+    r = covariance_union(xs, Ps, criterion=criterion)
+    assert r.info["converged"].all()
+    for k in range(3):
+        worst_abs, _ = covered(r.x[k], r.P[k], xs[k], Ps[k])
+        assert worst_abs >= -1e-14
+    np.testing.assert_allclose(r.x[0], e1 / 2, atol=1e-9)  # symmetric: halfway
