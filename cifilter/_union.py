@@ -287,7 +287,8 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
     """The mean minimising the criterion of the union of two estimates, batched.
 
     Iterates ``u <- u + t (Phi(u) - u)`` with ``Phi`` the per-direction mean rule
-    (:func:`_mean_rule`) and the best step ``t`` among the candidates. Returns
+    (:func:`_mean_rule`) and the best step ``t`` among the candidates, and for the trace
+    also the Newton steps of :func:`trace_newton_steps` where they decrease more. Returns
     ``(u, pair, value, iterations, converged, gap)``; ``gap`` is the certified relative
     gap of the trace criterion (NaN for ``"det"``, whose joint problem is not convex; there
     ``converged`` means stationary: residual of the mean rule at most ``residual_tol``
