@@ -269,6 +269,66 @@ def trace_newton_steps(P, x, u):
     return newton, kink
 
 
+def _det_pieces(P, x, u):
+    """``(p0, Q, log_d)`` with ``grad log det U = p0 + sum_k sign(log d_k) Q_k`` for two
+    estimates (rows): in the union's coordinates (``M_1 = T T^T``, ``M_2 = T diag(d) T^T``,
+    ``w_k`` the columns of ``T^-T``, ``e_a = y - a``, ``e_b = y - b``)
+    ``p0 = sum_k w_k (e_a,k + e_b,k / d_k)`` and ``Q_k = w_k (e_b,k / d_k - e_a,k)``
+    (``grad log d_k = 2 Q_k``); ``log det U = (log det M_1 + log det M_2 + sum |log d_k|)/2``.
+    """
+    M = _outer_updated(P, x, u)
+    L = cholesky(M, "the covariances about the fused mean")
+    w = whiten(Estimates(x, M, L, False), factor=False)
+    y = np.einsum("...ij,...j->...i", w.T_inv, u)
+    e_a, e_b = y - w.a, y - w.b
+    W = w.T_inv.swapaxes(-1, -2)  # columns w_k
+    Q = W * (e_b / w.d - e_a)[..., None, :]  # (..., n, k): column k is Q_k
+    p0 = np.einsum("...ik,...k->...i", W, e_a + e_b / w.d)
+    return p0, Q, np.log(w.d)
+
+
+def det_newton_steps(P, x, u):
+    """The Newton steps of :func:`trace_newton_steps` for ``log det U`` (rows of a batch).
+
+    The gradient pieces of :func:`_det_pieces` are exact; their Jacobians are taken by
+    central differences (the pieces are smooth where the ``d_k`` are distinct), which is
+    accurate enough for a step that is accepted only if it decreases the criterion.
+    """
+    n = u.shape[-1]
+    p0, Q, log_d = _det_pieces(P, x, u)
+    scale = np.sqrt(np.maximum(np.abs(np.diagonal(P, axis1=-2, axis2=-1)).max(axis=(-2, -1)),
+                               np.finfo(float).tiny))
+    h = 1e-6 * scale
+    J0 = np.empty(u.shape + (n,))
+    JQ = np.empty(Q.shape + (n,))
+    for m in range(n):  # loop over the n coordinates, not over the batch
+        step = np.zeros_like(u)
+        step[:, m] = h
+        p_plus, Q_plus, _ = _det_pieces(P, x, u + step)
+        p_minus, Q_minus, _ = _det_pieces(P, x, u - step)
+        J0[..., m] = (p_plus - p_minus) / (2 * h[:, None])
+        # the pieces are sign-invariant in w_k, and the order of the d_k is kept for small h
+        JQ[..., m] = (Q_plus - Q_minus) / (2 * h[:, None, None])
+    sign = np.sign(log_d)
+    grad = p0 + np.einsum("rik,rk->ri", Q, sign)
+    H = J0 + np.einsum("rikm,rk->rim", JQ, sign)
+    newton = -_solve(symmetrize(H), grad)
+    k = np.argmin(np.abs(log_d), axis=-1)
+    is_k = np.arange(n) == k[:, None]
+    a = 2.0 * np.take_along_axis(Q, k[:, None, None], 2)[..., 0]  # grad log d_k
+    sign_s = np.where(is_k, 0.0, sign)
+    grad_s = p0 + np.einsum("rik,rk->ri", Q, sign_s)
+    lam = np.clip(-np.einsum("ri,ri->r", a, grad_s)
+                  / np.maximum(np.einsum("ri,ri->r", a, a), 1e-300), -0.5, 0.5)
+    sigma = np.where(is_k, 2.0 * lam[:, None], sign)
+    H_k = symmetrize(J0 + np.einsum("rikm,rk->rim", JQ, sigma))
+    K = np.zeros((u.shape[0], n + 1, n + 1))
+    K[:, :n, :n], K[:, :n, n], K[:, n, :n] = H_k, a, a
+    log_dk = np.take_along_axis(log_d, k[:, None], 1)[:, 0]
+    rhs = -np.concatenate([grad_s + lam[:, None] * a, log_dk[:, None]], axis=-1)
+    return newton, _solve(K, rhs)[:, :n]
+
+
 def _solve(M, b):
     """Solve ``M x = b`` for a stack; a stack with a singular member is solved by least
     squares (pseudo-inverse) instead, so that one degenerate problem (equal eigenvalues of
@@ -287,8 +347,9 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
     """The mean minimising the criterion of the union of two estimates, batched.
 
     Iterates ``u <- u + t (Phi(u) - u)`` with ``Phi`` the per-direction mean rule
-    (:func:`_mean_rule`) and the best step ``t`` among the candidates, and for the trace
-    also the Newton steps of :func:`trace_newton_steps` where they decrease more. Returns
+    (:func:`_mean_rule`) and the best step ``t`` among the candidates, and the Newton steps
+    of :func:`trace_newton_steps` or :func:`det_newton_steps` where they decrease more.
+    Returns
     ``(u, pair, value, iterations, converged, gap)``; ``gap`` is the certified relative
     gap of the trace criterion (NaN for ``"det"``, whose joint problem is not convex; there
     ``converged`` means stationary: residual of the mean rule at most ``residual_tol``
@@ -344,20 +405,21 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
         accepted = best_value < base
         chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
         u[moving[accepted]] = chosen[accepted]
-        if kind == "trace":  # Newton steps: quadratic convergence near the optimum
-            newton, kink = trace_newton_steps(flat_P[moving], flat_x[moving], current)
-            candidate = np.stack([current + newton, current + kink], axis=1)
-            candidate = np.where(np.isfinite(candidate), candidate, current[:, None, :])
-            _, trial_value = evaluate(candidate.reshape(-1, candidate.shape[-1]),
-                                      np.repeat(moving, 2))
-            trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf)
-            trial_value = trial_value.reshape(-1, 2)
-            pick = np.argmin(trial_value, axis=-1)
-            newton_value = np.take_along_axis(trial_value, pick[:, None], axis=-1)[:, 0]
-            better = newton_value < np.where(accepted, best_value, base)
-            chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
-            u[moving[better]] = chosen[better]
-            accepted |= better
+        # Newton steps: quadratic convergence near the optimum
+        steps = trace_newton_steps if kind == "trace" else det_newton_steps
+        newton, kink = steps(flat_P[moving], flat_x[moving], current)
+        candidate = np.stack([current + newton, current + kink], axis=1)
+        candidate = np.where(np.isfinite(candidate), candidate, current[:, None, :])
+        _, trial_value = evaluate(candidate.reshape(-1, candidate.shape[-1]),
+                                  np.repeat(moving, 2))
+        trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf)
+        trial_value = trial_value.reshape(-1, 2)
+        pick = np.argmin(trial_value, axis=-1)
+        newton_value = np.take_along_axis(trial_value, pick[:, None], axis=-1)[:, 0]
+        better = newton_value < np.where(accepted, best_value, base)
+        chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
+        u[moving[better]] = chosen[better]
+        accepted |= better
         t = 0.5
         for _ in range(40):
             trial = np.flatnonzero(~accepted)
