@@ -90,7 +90,7 @@ def covariance_union(xs, Ps, criterion="trace", mean=None):
     and for the trace ``A + (B - A)_+``. In the coordinates of these decompositions the
     optimal mean takes, direction by direction, the coordinate of the mean whose matrix
     dominates (between the two at ties); the mean is found by iterating that rule with
-    steps onto the kinks of the criterion and, for the trace, Newton steps. The guarantee
+    steps onto the kinks of the criterion and Newton steps. The guarantee
     ``P >= M_i`` holds to rounding relative to ``||P||`` for input condition numbers up to
     1e12. Derivations and proofs: ``docs/methods/union.rst``.
 
