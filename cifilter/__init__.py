@@ -18,6 +18,10 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
   and :class:`SplitCIKalmanFilter` (Julier & Uhlmann; Li, Nashashibi & Yang);
   :func:`cross_covariance_fusion` (``"cross"``), Bar-Shalom-Campo with an assumed
   correlation (MATLAB's ``fusexcov``);
+* :func:`covariance_union` (``"cu"``), :func:`largest_ellipsoid` (``"le"``) and
+  :func:`sampling_ci` (``"sci"``): covariance union for inconsistent tracks (Uhlmann
+  2003), safe fusion (Benaskeur 2002; Nygårds et al. 2016) and sampling CI (Tian,
+  Bar-Shalom & Chen 2010);
 * every rule is reachable through :func:`fuse` and the registry
   (:func:`register_method`, :func:`available_methods`).
 """
@@ -31,13 +35,16 @@ from .ei import ellipsoidal_intersection
 from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
 from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
 from .ici import inverse_covariance_intersection
+from .largest_ellipsoid import largest_ellipsoid
 from .optimal import naive_fusion, optimal_fusion
 from .pci import partial_ci
 from .pcei import pc_ellipsoidal_intersection
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
+from .sampling_ci import sampling_ci
 from .split_ci import split_covariance_intersection
 from .split_filter import SplitCIKalmanFilter
+from .union import covariance_union
 
 __version__ = "0.1.0"
 
@@ -55,12 +62,14 @@ __all__ = [
     "bayesian_fusion",
     "ci_weights",
     "covariance_intersection",
+    "covariance_union",
     "cross_covariance_fusion",
     "ellipsoidal_intersection",
     "fuse",
     "get_method",
     "horizon_study",
     "inverse_covariance_intersection",
+    "largest_ellipsoid",
     "mahalanobis_sq",
     "naive_fusion",
     "optimal_fusion",
@@ -70,6 +79,7 @@ __all__ = [
     "propagate_bound",
     "register_method",
     "sample_joint_covariances",
+    "sampling_ci",
     "split_covariance_intersection",
     "steady_state_covariance",
 ]

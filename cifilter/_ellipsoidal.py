@@ -48,9 +48,9 @@ __all__ = [
     "DEFAULT_EPS", "MUTUAL_MEANS", "REGULARIZERS", "Decomposition", "Fused", "Whitened",
     "as_full", "check_options", "check_pair", "check_result", "covariance_regularised_base",
     "decompose", "ei_fusion", "ei_in_whitened", "estimates_from_arguments",
-    "fuse_diagonal", "fuse_full", "gram", "inverse_root", "mean_ratio",
-    "mutual_mean_weights", "pair_estimates", "psi_at_ei", "solve_spd", "spd_inverse_stack",
-    "ties", "to_original", "whiten",
+    "fuse_diagonal", "fuse_full", "gram", "inverse_root", "largest_ellipsoid_fusion",
+    "mean_ratio", "mutual_mean_weights", "pair_estimates", "psi_at_ei", "solve_spd",
+    "spd_inverse_stack", "ties", "to_original", "whiten",
 ]
 
 MUTUAL_MEANS = ("sijs-lazar", "as-printed")
@@ -718,3 +718,28 @@ def ei_fusion(est, eps, mutual_mean, regularizer):
         info.update(psi=psi, ties=ties(w.d, tie_eps).sum(-1))
     info.update(mutual_mean=mutual_mean, regularizer=regularizer, eps=eps)
     return x, P, gains, info
+
+
+# --------------------------------------------------------------------------- largest ellipsoid
+def largest_ellipsoid_fusion(est):
+    """Largest-ellipsoid (safe) fusion of two validated estimates: ``(x, P, gains, info)``.
+
+    In the coordinates of :func:`whiten` (``Pa = T T^T``, ``Pb = T diag(d) T^T``) each
+    direction keeps the more informative input: the coordinate of ``a`` where ``d > 1``,
+    that of ``b`` where ``d < 1`` and their average where ``d == 1``; the covariance is
+    ``T diag(min(1, d)) T^T = F F^T``, EI's (Benaskeur 2002; Nygårds, Deleskog & Hendeby
+    2016). ``x`` is in row form; ``info`` holds ``kept`` (..., n), the share of ``a`` per
+    direction (1, 0 or 1/2) and ``ties`` (..., ), the number of directions with ``d == 1``.
+    Raises ``IllConditionedError`` rather than return a ``P`` that is not positive definite.
+    """
+    w = whiten(est, factor=True)
+    kept = np.where(w.d > 1.0, 1.0, np.where(w.d < 1.0, 0.0, 0.5))
+    K_a = (w.T * kept[..., None, :]) @ w.T_inv
+    gains = np.stack([K_a, np.eye(K_a.shape[-1]) - K_a], axis=-3)
+    x = np.einsum("...kij,...kj->...i", gains, est.x)
+    P = gram(w.F)
+    if est.batch_shape:
+        check_result(P, est)
+    else:
+        _check_one_result(P, est)
+    return x, P, gains, {"kept": kept, "ties": np.count_nonzero(w.d == 1.0, axis=-1)}

@@ -6,7 +6,20 @@ validated estimates, guarantee, truth hook); rules that can choose their weights
 bound after future filtering get their ``horizon`` hook from :mod:`cifilter.horizon`.
 """
 
-from . import bayes, ci, cross, ei, ici, optimal, pcei, pci, split_ci
+from . import (
+    bayes,
+    ci,
+    cross,
+    ei,
+    ici,
+    largest_ellipsoid,
+    optimal,
+    pcei,
+    pci,
+    sampling_ci,
+    split_ci,
+    union,
+)
 from .horizon import ci_horizon_options, pci_horizon_options
 from .registry import register_method
 
@@ -21,6 +34,9 @@ BUILT_IN = (
     ici.REGISTRATION,
     split_ci.REGISTRATION,
     cross.REGISTRATION,
+    union.REGISTRATION,
+    largest_ellipsoid.REGISTRATION,
+    sampling_ci.REGISTRATION,
 )
 
 for _registration in BUILT_IN:

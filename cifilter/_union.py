@@ -1,0 +1,458 @@
+"""Covariance union: the smallest common upper bound of covariances, and the fused mean.
+
+For a candidate mean ``u`` every estimate ``(x_i, P_i)`` asks for ``U >= M_i`` with
+``M_i = P_i + (u - x_i)(u - x_i)^T`` (Uhlmann 2003). For two matrices ``A``, ``B`` the
+smallest such ``U`` has a closed form in both criteria (derivations:
+``docs/methods/union.rst``):
+
+* ``"det"``: with ``A = T T^T``, ``B = T diag(d) T^T``, ``U = T diag(max(1, d)) T^T``,
+  computed as ``A + B - T diag(min(1, d)) T^T`` from the factor of the whitening shared
+  with Ellipsoidal Intersection (:func:`cifilter._ellipsoidal.whiten`);
+* ``"trace"``: ``U = A + (B - A)_+ = (A + B)/2 + |B - A|/2`` (the positive part in an
+  orthonormal eigenbasis ``V`` of ``B - A``).
+
+Both are a per-direction maximum in coordinates ``y = T^-1 x`` (``T = V`` for the trace),
+and the mean that minimises the criterion satisfies a per-direction rule in the same
+coordinates: each coordinate of ``u`` is that of the mean of the dominating matrix, or lies
+between the two means where they tie. :func:`optimal_pair_mean` iterates that rule with a
+descent safeguard. Every function is batched over leading axes.
+"""
+
+from typing import NamedTuple
+
+import numpy as np
+
+from ._ellipsoidal import gram, whiten
+from ._linalg import cholesky, ill_conditioned, symmetrize
+from ._validation import Estimates
+
+__all__ = [
+    "CRITERIA", "PairUnion", "criterion_of", "mean_candidates_value", "optimal_pair_mean",
+    "pair_union", "separable_start", "sequential_union",
+]
+
+CRITERIA = ("trace", "det")
+"""Accepted criteria of :func:`cifilter.covariance_union`."""
+
+# Eigen-directions whose two variances agree to this relative precision are ties: there the
+# optimal mean may lie anywhere between the two means (the criterion has a kink).
+TIE_TOL = 1e-9
+# The optimal mean of two estimates is accepted when the certified relative gap of the trace
+# criterion is at most GAP_TOL, or (det) when the mean rule's residual is at most
+# RESIDUAL_TOL standard deviations of U: the optimum typically sits on a kink, approached
+# linearly from both sides, and a residual r leaves an excess of the criterion of order r^2.
+GAP_TOL = 1e-9
+RESIDUAL_TOL = 1e-6
+
+
+class PairUnion(NamedTuple):
+    """The union ``U`` of two matrices and the coordinates in which it is a maximum.
+
+    ``U = T diag(max(A_k, B_k)) T^T`` with ``A_k``, ``B_k`` the (diagonal) variances of the
+    two matrices in the coordinates ``y = T_inv x``; ``a``, ``b`` are the two means in these
+    coordinates and ``side`` (..., n) is +1 where ``B`` dominates, -1 where ``A`` does, 0
+    at ties.
+    """
+
+    U: np.ndarray
+    T: np.ndarray
+    T_inv: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    side: np.ndarray
+    scale: np.ndarray  # (..., n) standard deviation of U along each coordinate
+    var_a: np.ndarray  # (..., n) variance of A along each coordinate
+    var_b: np.ndarray  # (..., n) variance of B along each coordinate
+
+
+def _outer_updated(P, x, u):
+    """``M_i = P_i + (u - x_i)(u - x_i)^T`` for P (..., N, n, n), x (..., N, n), u (..., n)."""
+    d = u[..., None, :] - x
+    return symmetrize(P + d[..., :, None] * d[..., None, :])
+
+
+def pair_union(A, B, xa, xb, kind):
+    """The smallest upper bound of ``A`` and ``B`` (..., n, n) in ``kind`` (a :class:`PairUnion`).
+
+    ``xa``, ``xb`` (..., n) are mapped to the union's coordinates (for the mean rule).
+    """
+    if kind == "det":
+        P = np.stack([A, B], axis=-3)
+        L = cholesky(P, "the covariances about the fused mean")
+        est = Estimates(np.stack([xa, xb], axis=-2), P, L, False)
+        w = whiten(est, factor=True)
+        # T diag(max(1, d)) T^T = A + B - T diag(min(1, d)) T^T: at least (A + B)/2, so the
+        # difference loses nothing (as EI's common covariance, docs/methods/ei.rst)
+        U = symmetrize(w.S - gram(w.F))
+        log_d = np.log(w.d)
+        side = np.where(np.abs(log_d) <= TIE_TOL, 0, np.sign(log_d)).astype(int)
+        scale = np.sqrt(np.maximum(w.d, 1.0))
+        return PairUnion(U, w.T, w.T_inv, w.a, w.b, side, scale, np.ones_like(w.d), w.d)
+    C = symmetrize(B - A)
+    c, V = np.linalg.eigh(C)
+    U = symmetrize(0.5 * (A + B) + (V * (0.5 * np.abs(c))[..., None, :]) @ V.swapaxes(-1, -2))
+    size = np.maximum(np.abs(np.diagonal(A, axis1=-2, axis2=-1)).max(axis=-1),
+                      np.abs(np.diagonal(B, axis1=-2, axis2=-1)).max(axis=-1))
+    side = np.where(np.abs(c) <= TIE_TOL * size[..., None], 0, np.sign(c)).astype(int)
+    V_t = V.swapaxes(-1, -2)
+    a = np.einsum("...ij,...j->...i", V_t, xa)
+    b = np.einsum("...ij,...j->...i", V_t, xb)
+    scale = np.sqrt(np.maximum(np.einsum("...ki,...kl,...li->...i", V, U, V), 0.0))
+    var_a = np.einsum("...ki,...kl,...li->...i", V, A, V)
+    return PairUnion(U, V, V_t, a, b, side, scale, var_a, var_a + c)
+
+
+def criterion_of(U, kind):
+    """``trace(U)`` or ``log det U`` (..., ); IllConditionedError if ``U`` is not PD."""
+    if kind == "trace":
+        return np.trace(U, axis1=-2, axis2=-1)
+    L = cholesky(U, "the covariance union")
+    return 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(axis=-1)
+
+
+def sequential_union(P, x, u, kind, order):
+    """A common upper bound of all ``M_i`` (N >= 2): pairwise unions in ``order``.
+
+    Each step's result bounds both of its arguments, so the last bounds every ``M_i``;
+    for N = 2 it is the smallest, for N > 2 a bound that need not be the smallest.
+    """
+    M = _outer_updated(P, x, u)
+    M = np.take_along_axis(M, order[..., :, None, None], axis=-3)
+    U = M[..., 0, :, :]
+    for i in range(1, M.shape[-3]):  # loop over the estimates, not over the batch
+        U = pair_union(U, M[..., i, :, :], u, u, kind).U
+    return U
+
+
+def mean_candidates_value(P, x, candidates, kind, order):
+    """Criterion of the union at each candidate mean (..., K, n) -> (..., K)."""
+    K = candidates.shape[-2]
+    Pk = np.broadcast_to(P[..., None, :, :, :], P.shape[:-3] + (K,) + P.shape[-3:])
+    xk = np.broadcast_to(x[..., None, :, :], x.shape[:-2] + (K,) + x.shape[-2:])
+    ok = np.broadcast_to(order[..., None, :], order.shape[:-1] + (K, order.shape[-1]))
+    return criterion_of(sequential_union(Pk, xk, candidates, kind, ok), kind)
+
+
+def separable_start(P, x, kind):
+    """A starting mean for two estimates: the per-direction optimum in the union's
+    coordinates at equal means (exact when the means agree, and a good start otherwise).
+
+    In each coordinate ``max(p_a + (y - a)^2, p_b + (y - b)^2)`` is smallest at the vertex of
+    the dominating parabola, or where the two cross.
+    """
+    pair = pair_union(P[..., 0, :, :], P[..., 1, :, :], x[..., 0, :], x[..., 1, :], kind)
+    a, b, pa, pb = pair.a, pair.b, pair.var_a, pair.var_b
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        cross = np.where(a != b, (pa - pb + a**2 - b**2) / (2.0 * (a - b)), a)
+    y = np.where(pa >= pb + (a - b) ** 2, a, np.where(pb >= pa + (a - b) ** 2, b, cross))
+    return np.einsum("...ij,...j->...i", pair.T, y)
+
+
+def _mean_rule(pair, u):
+    """The per-direction mean rule at ``u``: target mean and the stationarity residual.
+
+    In the union's coordinates the target takes the coordinate of the dominating mean and,
+    at ties, the current coordinate clipped to the interval between the two means. ``u`` is
+    stationary exactly when it is its own target; the residual is measured in standard
+    deviations of ``U`` (dimensionless).
+    """
+    y = np.einsum("...ij,...j->...i", pair.T_inv, u)
+    low, high = np.minimum(pair.a, pair.b), np.maximum(pair.a, pair.b)
+    target = np.where(pair.side > 0, pair.b,
+                      np.where(pair.side < 0, pair.a, np.clip(y, low, high)))
+    residual = np.abs(target - y) / pair.scale
+    u_target = np.einsum("...ij,...j->...i", pair.T, target)
+    return u_target, target, residual.max(axis=-1)
+
+
+def trace_dual_bound(pair, P1, P2):
+    """A certified lower bound of the smallest ``trace(U)`` over all means (two estimates).
+
+    For any ``Z`` with ``0 <= Z <= I`` the Lagrange dual of the joint convex problem
+    ``min trace U`` s.t. ``U >= M_i(u)`` (multipliers ``I - Z`` and ``Z``) is
+    ``q(Z) = tr P_1 + tr(Z (P_2 - P_1)) + dx^T (Z - Z^2) dx``, ``dx = x_2 - x_1``
+    (``docs/methods/union.rst``, "The trace criterion is convex"). With ``Z = V diag(s) V^T``
+    in the union's eigenbasis ``V`` it is separable,
+    ``q = sum_k (1 - s_k) p1_k + s_k p2_k + s_k (1 - s_k) beta_k^2``, and the best ``s_k`` in
+    [0, 1] is closed form; at the optimum the bound is tight.
+    """
+    beta = pair.b - pair.a
+    V = pair.T
+    p1 = np.einsum("...ki,...kl,...li->...i", V, P1, V)
+    p2 = np.einsum("...ki,...kl,...li->...i", V, P2, V)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        s = np.where(beta != 0, (p2 - p1 + beta**2) / (2.0 * beta**2),
+                     np.where(p2 > p1, 1.0, 0.0))
+    s = np.clip(s, 0.0, 1.0)
+    return ((1.0 - s) * p1 + s * p2 + s * (1.0 - s) * beta**2).sum(axis=-1)
+
+
+def _step_candidates(P, x, u, step):
+    """Step lengths to try first along ``u + t step``: 1 and the kinks in (0, 1].
+
+    Along the line ``B - A`` is affine in ``t`` (the quadratic terms cancel), ``C(t) = C_0 +
+    t C_1`` with ``C_1 = -(step dx^T + dx step^T)`` of rank two (``dx = x_2 - x_1``), so the
+    criterion has at most two kinks on the line: where ``C(t)`` is singular,
+    ``t = -1/lambda`` for the eigenvalues ``lambda`` of the 2 x 2 matrix ``J W^T C_0^-1 W``
+    (``W = [step, dx]``, ``J = -[[0, 1], [1, 0]]``). Optima sit on kinks; trying them
+    lands on the kink exactly instead of approaching it by halving.
+    """
+    d1, d2 = u - x[:, 0], u - x[:, 1]
+    C0 = symmetrize(P[:, 1] - P[:, 0] + d2[:, :, None] * d2[:, None, :]
+                    - d1[:, :, None] * d1[:, None, :])
+    W = np.stack([step, x[:, 1] - x[:, 0]], axis=-1)
+    kinks = np.full((u.shape[0], 2), 1.0)
+    try:
+        G = W.swapaxes(-1, -2) @ np.linalg.solve(C0, W)
+        lam = np.linalg.eigvals(-G[:, ::-1, :])  # J G with J = -[[0, 1], [1, 0]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where((np.abs(lam.imag) <= 1e-12 * np.abs(lam)) & (lam.real != 0),
+                         -1.0 / lam.real, 1.0)
+        kinks = np.where((t > 0) & (t <= 1), t, 1.0)
+    except np.linalg.LinAlgError:  # a singular C_0 (u on a kink already): halvings only
+        pass
+    return np.concatenate([np.ones((u.shape[0], 1)), kinks], axis=-1)
+
+
+def trace_newton_steps(P, x, u):
+    """Two Newton steps for the trace criterion of two estimates (rows of a batch).
+
+    ``g(u) = const + (|u - x_1|^2 + |u - x_2|^2)/2 + ||C(u)||_* / 2`` with
+    ``C(u) = M_2 - M_1``, whose derivative is ``-(delta dx^T + dx delta^T)``: the gradient
+    and the Hessian of the nuclear norm follow from first- and second-order eigenvalue
+    perturbation (``docs/methods/union.rst``, "Newton steps"). Returns the smooth Newton
+    step (valid away from kinks) and the Newton step of the KKT system that keeps the
+    smallest eigenvalue ``c_k`` at zero (the optimum on a kink, with multiplier ``lambda``
+    in [-1/2, 1/2]); both are candidates, accepted only if they decrease ``g``.
+    """
+    n = u.shape[-1]
+    d1, d2 = u - x[:, 0], u - x[:, 1]
+    C = symmetrize(P[:, 1] - P[:, 0] + d2[:, :, None] * d2[:, None, :]
+                   - d1[:, :, None] * d1[:, None, :])
+    c, V = np.linalg.eigh(C)
+    beta = np.einsum("rij,ri->rj", V, x[:, 1] - x[:, 0])
+    sign = np.sign(c)
+    half = 0.5 * sign
+    k = np.argmin(np.abs(c), axis=-1)
+    is_k = np.arange(n) == k[:, None]
+    # g_jl = -(beta_l v_j + beta_j v_l), (rows, j, l, n)
+    G = -(beta[:, None, :, None] * V.swapaxes(-1, -2)[:, :, None, :]
+          + beta[:, :, None, None] * V.swapaxes(-1, -2)[:, None, :, :])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        pair = (half[:, :, None] - half[:, None, :]) / (c[:, :, None] - c[:, None, :])
+    off = ~np.eye(n, dtype=bool)
+    pair = np.where(off & np.isfinite(pair), pair, 0.0)
+    grad_smooth = 2.0 * u - x[:, 0] - x[:, 1]
+    eye = np.broadcast_to(np.eye(n), (u.shape[0], n, n))
+    # smooth Newton: all eigenvalues with their signs (sum over pairs j < l, both orders / 2)
+    H = 2.0 * eye + np.einsum("rjl,rjla,rjlb->rab", pair, G, G)
+    grad = grad_smooth - np.einsum("rj,rj,rij->ri", sign, beta, V)
+    newton = -_solve(H, grad)
+    # KKT on the kink c_k = 0: c_k's own term replaced by lambda c_k
+    a = -2.0 * np.take_along_axis(beta, k[:, None], 1) * np.take_along_axis(
+        V, k[:, None, None], 2)[..., 0]
+    grad_s = grad_smooth - np.einsum("rj,rj,rij->ri", np.where(is_k, 0.0, sign), beta, V)
+    lam = np.clip(-np.einsum("ri,ri->r", a, grad_s)
+                  / np.maximum(np.einsum("ri,ri->r", a, a), 1e-300), -0.5, 0.5)
+    c_k = np.take_along_axis(c, k[:, None], 1)[:, 0]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        to_k = (np.where(is_k, 0.0, half) - lam[:, None]) / (c - c_k[:, None])
+    to_k = np.where(is_k | ~np.isfinite(to_k), 0.0, to_k)
+    rest = np.where(is_k[:, :, None] | is_k[:, None, :], 0.0, pair)
+    G_k = np.take_along_axis(G, k[:, None, None, None], 2)[:, :, 0, :]  # g_jk (rows, j, n)
+    H_k = (2.0 * eye + np.einsum("rjl,rjla,rjlb->rab", rest, G, G)
+           + 2.0 * np.einsum("rj,rja,rjb->rab", to_k, G_k, G_k))
+    K = np.zeros((u.shape[0], n + 1, n + 1))
+    K[:, :n, :n], K[:, :n, n], K[:, n, :n] = H_k, a, a
+    rhs = -np.concatenate([grad_s + lam[:, None] * a, c_k[:, None]], axis=-1)
+    kink = _solve(K, rhs)[:, :n]
+    return newton, kink
+
+
+def _det_pieces(P, x, u):
+    """``(p0, Q, log_d)`` with ``grad log det U = p0 + sum_k sign(log d_k) Q_k`` for two
+    estimates (rows): in the union's coordinates (``M_1 = T T^T``, ``M_2 = T diag(d) T^T``,
+    ``w_k`` the columns of ``T^-T``, ``e_a = y - a``, ``e_b = y - b``)
+    ``p0 = sum_k w_k (e_a,k + e_b,k / d_k)`` and ``Q_k = w_k (e_b,k / d_k - e_a,k)``
+    (``grad log d_k = 2 Q_k``); ``log det U = (log det M_1 + log det M_2 + sum |log d_k|)/2``.
+    """
+    M = _outer_updated(P, x, u)
+    L = cholesky(M, "the covariances about the fused mean")
+    w = whiten(Estimates(x, M, L, False), factor=False)
+    y = np.einsum("...ij,...j->...i", w.T_inv, u)
+    e_a, e_b = y - w.a, y - w.b
+    W = w.T_inv.swapaxes(-1, -2)  # columns w_k
+    Q = W * (e_b / w.d - e_a)[..., None, :]  # (..., n, k): column k is Q_k
+    p0 = np.einsum("...ik,...k->...i", W, e_a + e_b / w.d)
+    return p0, Q, np.log(w.d)
+
+
+def det_newton_steps(P, x, u):
+    """The Newton steps of :func:`trace_newton_steps` for ``log det U`` (rows of a batch).
+
+    The gradient pieces of :func:`_det_pieces` are exact; their Jacobians are taken by
+    central differences (the pieces are smooth where the ``d_k`` are distinct), which is
+    accurate enough for a step that is accepted only if it decreases the criterion.
+    """
+    n = u.shape[-1]
+    p0, Q, log_d = _det_pieces(P, x, u)
+    scale = np.sqrt(np.maximum(np.abs(np.diagonal(P, axis1=-2, axis2=-1)).max(axis=(-2, -1)),
+                               np.finfo(float).tiny))
+    h = 1e-6 * scale
+    J0 = np.empty(u.shape + (n,))
+    JQ = np.empty(Q.shape + (n,))
+    for m in range(n):  # loop over the n coordinates, not over the batch
+        step = np.zeros_like(u)
+        step[:, m] = h
+        p_plus, Q_plus, _ = _det_pieces(P, x, u + step)
+        p_minus, Q_minus, _ = _det_pieces(P, x, u - step)
+        J0[..., m] = (p_plus - p_minus) / (2 * h[:, None])
+        # the pieces are sign-invariant in w_k, and the order of the d_k is kept for small h
+        JQ[..., m] = (Q_plus - Q_minus) / (2 * h[:, None, None])
+    sign = np.sign(log_d)
+    grad = p0 + np.einsum("rik,rk->ri", Q, sign)
+    H = J0 + np.einsum("rikm,rk->rim", JQ, sign)
+    newton = -_solve(symmetrize(H), grad)
+    k = np.argmin(np.abs(log_d), axis=-1)
+    is_k = np.arange(n) == k[:, None]
+    a = 2.0 * np.take_along_axis(Q, k[:, None, None], 2)[..., 0]  # grad log d_k
+    sign_s = np.where(is_k, 0.0, sign)
+    grad_s = p0 + np.einsum("rik,rk->ri", Q, sign_s)
+    lam = np.clip(-np.einsum("ri,ri->r", a, grad_s)
+                  / np.maximum(np.einsum("ri,ri->r", a, a), 1e-300), -0.5, 0.5)
+    sigma = np.where(is_k, 2.0 * lam[:, None], sign)
+    H_k = symmetrize(J0 + np.einsum("rikm,rk->rim", JQ, sigma))
+    K = np.zeros((u.shape[0], n + 1, n + 1))
+    K[:, :n, :n], K[:, :n, n], K[:, n, :n] = H_k, a, a
+    log_dk = np.take_along_axis(log_d, k[:, None], 1)[:, 0]
+    rhs = -np.concatenate([grad_s + lam[:, None] * a, log_dk[:, None]], axis=-1)
+    return newton, _solve(K, rhs)[:, :n]
+
+
+def _solve(M, b):
+    """Solve ``M x = b`` for a stack; a stack with a singular member is solved by least
+    squares (pseudo-inverse) instead, so that one degenerate problem (equal eigenvalues of
+    opposite sign at zero) gives a finite step for every problem rather than an error."""
+    with np.errstate(all="ignore"):
+        M = np.where(np.isfinite(M), M, 0.0)
+        b = np.where(np.isfinite(b), b, 0.0)
+        try:
+            return np.linalg.solve(M, b[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            return np.einsum("...ij,...j->...i", np.linalg.pinv(M), b)
+
+
+def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_TOL,
+                      max_iter=100):
+    """The mean minimising the criterion of the union of two estimates, batched.
+
+    Iterates ``u <- u + t (Phi(u) - u)`` with ``Phi`` the per-direction mean rule
+    (:func:`_mean_rule`) and the best step ``t`` among the candidates, and the Newton steps
+    of :func:`trace_newton_steps` or :func:`det_newton_steps` where they decrease more.
+    Returns
+    ``(u, pair, value, iterations, converged, gap)``; ``gap`` is the certified relative
+    gap of the trace criterion (NaN for ``"det"``, whose joint problem is not convex; there
+    ``converged`` means stationary: residual of the mean rule at most ``residual_tol``
+    standard deviations of ``U``). Candidate steps: halvings and the kinks of the line
+    (:func:`_step_candidates`); a problem stops when no candidate decreases the criterion.
+    """
+    batch = x.shape[:-2]
+    flat_P = P.reshape((-1,) + P.shape[-3:])
+    flat_x = x.reshape((-1,) + x.shape[-2:])
+    u = start.reshape((-1, x.shape[-1])).copy()
+    size = u.shape[0]
+    iterations = np.zeros(size, dtype=int)
+    done = np.zeros(size, dtype=bool)
+    converged = np.zeros(size, dtype=bool)
+    gap = np.full(size, np.nan)
+
+    def evaluate(u_rows, rows):
+        M = _outer_updated(flat_P[rows], flat_x[rows], u_rows)
+        pair = pair_union(M[:, 0], M[:, 1], flat_x[rows, 0], flat_x[rows, 1], kind)
+        return pair, criterion_of(pair.U, kind)
+
+    everything = np.arange(size)
+    pair, value = evaluate(u, everything)
+    for _ in range(max_iter):
+        rows = np.flatnonzero(~done)
+        if rows.size == 0:
+            break
+        pair, value_rows = evaluate(u[rows], rows)
+        u_target, _, residual = _mean_rule(pair, u[rows])
+        if kind == "trace":
+            lower = trace_dual_bound(pair, flat_P[rows, 0], flat_P[rows, 1])
+            g = np.maximum(value_rows - lower, 0.0) / value_rows
+            gap[rows] = g
+            ok = g <= tol
+        else:
+            ok = residual <= residual_tol
+        converged[rows[ok]] = True
+        done[rows[ok]] = True
+        moving = rows[~ok]
+        if moving.size == 0:
+            break
+        step = (u_target - u[rows])[~ok]
+        base, current = value_rows[~ok], u[moving]
+        # the full step and the kinks of the line first; halvings only where they fail
+        ts = _step_candidates(flat_P[moving], flat_x[moving], current, step)
+        K = ts.shape[-1]
+        candidate = current[:, None, :] + ts[..., None] * step[:, None, :]
+        _, trial_value = evaluate(candidate.reshape(-1, candidate.shape[-1]),
+                                  np.repeat(moving, K))
+        trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf).reshape(-1, K)
+        pick = np.argmin(trial_value, axis=-1)
+        best_value = np.take_along_axis(trial_value, pick[:, None], axis=-1)[:, 0]
+        accepted = best_value < base
+        chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
+        u[moving[accepted]] = chosen[accepted]
+        # Newton steps: quadratic convergence near the optimum
+        steps = trace_newton_steps if kind == "trace" else det_newton_steps
+        newton, kink = steps(flat_P[moving], flat_x[moving], current)
+        candidate = np.stack([current + newton, current + kink], axis=1)
+        candidate = np.where(np.isfinite(candidate), candidate, current[:, None, :])
+        _, trial_value = evaluate(candidate.reshape(-1, candidate.shape[-1]),
+                                  np.repeat(moving, 2))
+        trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf)
+        trial_value = trial_value.reshape(-1, 2)
+        pick = np.argmin(trial_value, axis=-1)
+        newton_value = np.take_along_axis(trial_value, pick[:, None], axis=-1)[:, 0]
+        better = newton_value < np.where(accepted, best_value, base)
+        chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
+        u[moving[better]] = chosen[better]
+        accepted |= better
+        t = 0.5
+        for _ in range(40):
+            trial = np.flatnonzero(~accepted)
+            if trial.size == 0:
+                break
+            candidate = current[trial] + t * step[trial]
+            _, trial_value = evaluate(candidate, moving[trial])
+            better = trial_value < base[trial]
+            u[moving[trial[better]]] = candidate[better]
+            accepted[trial[better]] = True
+            t *= 0.5
+        iterations[moving] += 1
+        done[moving[~accepted]] = True  # no decrease left above rounding: stalled
+    pair, value = evaluate(u, everything)
+    _, _, residual = _mean_rule(pair, u)
+    if kind == "trace":
+        lower = trace_dual_bound(pair, flat_P[:, 0], flat_P[:, 1])
+        gap = np.maximum(value - lower, 0.0) / value
+        converged = gap <= tol
+    else:
+        converged = residual <= residual_tol
+    shaped = [a.reshape(batch + a.shape[1:]) for a in (u, value, iterations, converged, gap)]
+    pair = PairUnion(*[a.reshape(batch + a.shape[1:]) for a in pair])
+    return shaped[0], pair, shaped[1], shaped[2], shaped[3], shaped[4]
+
+
+def check_union(U, name="the covariance union"):
+    """Raise IllConditionedError unless every ``U`` is finite and positive definite."""
+    good = np.isfinite(U).all(axis=(-2, -1))
+    if good.all():
+        try:
+            np.linalg.cholesky(U)
+            return
+        except np.linalg.LinAlgError:
+            pass
+    raise ill_conditioned(name, np.inf, "is not numerically positive definite")
