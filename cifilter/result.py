@@ -96,8 +96,11 @@ class FusionResult:
         The scalar weights on the estimates, ``P^-1 = sum_i w_i P_i^-1`` for the
         information-form rules: ``omega`` for ``"ci"`` (the default when only ``omega`` is
         given), eq. (24) of Wu, Cai & Fu for ``"pci"`` (they do not sum to one), ones for
-        ``"naive"``; None for rules whose fusion is not a scalar weighting (``"optimal"``,
-        ``"ei"``, ``"pcei"``, ``"bayes"``). Each method's page documents them.
+        ``"naive"``, ``1/rho`` each for ``"sci"``; for ``"ici"`` and ``"split-ci"`` the pair
+        ``(omega, 1 - omega)`` of their own parametrisation (two estimates); None for rules
+        whose fusion is not a scalar weighting (``"optimal"``, ``"ei"``, ``"pcei"``,
+        ``"bayes"``, ``"cross"``, ``"cu"``, ``"le"``). The registry record's ``weights``
+        says what they are for each rule; each method's page documents them.
 
     Notes
     -----
