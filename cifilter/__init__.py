@@ -19,6 +19,7 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
 
 from . import _rules  # noqa: F401  (registers the built-in rules, in its explicit order)
 from ._linalg import IllConditionedError, mahalanobis_sq
+from .backend import backend, get_backend, set_backend
 from .bayes import bayesian_fusion, sample_joint_covariances
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
 from .ei import ellipsoidal_intersection
@@ -42,11 +43,13 @@ __all__ = [
     "KalmanFilter",
     "UnscentedKalmanFilter",
     "available_methods",
+    "backend",
     "bayesian_fusion",
     "ci_weights",
     "covariance_intersection",
     "ellipsoidal_intersection",
     "fuse",
+    "get_backend",
     "get_method",
     "horizon_study",
     "mahalanobis_sq",
@@ -58,5 +61,6 @@ __all__ = [
     "propagate_bound",
     "register_method",
     "sample_joint_covariances",
+    "set_backend",
     "steady_state_covariance",
 ]
