@@ -20,10 +20,11 @@ __all__ = ["optimal_pair", "weighted"]
 _KINDS = {"trace": 0, "det": 1, "weighted-trace": 2, None: 3}
 
 
-def _module():
+def _kernel(name, size):
+    """The kernel ``name``: threaded, or serial for a batch of at most one chunk."""
     from . import _kernels_ci
 
-    return _kernels_ci
+    return getattr(_kernels_ci, name if size > _kernels_ci._CHUNK else name + "_serial")
 
 
 def _writable(array):
@@ -77,7 +78,7 @@ def optimal_pair(est, kind, W, numpy_path):
     iterations = np.zeros(size, dtype=int)
     status = np.empty(size, dtype=np.int8)
     x_out, P_out, gains = np.empty((size, n)), np.empty((size, n, n)), np.empty((size, 2, n, n))
-    _module().ci_pair_optimal(x, P, L, Wk, _KINDS[kind], omega, iterations, gap, x_out,
+    _kernel("ci_pair_optimal", size)(x, P, L, Wk, _KINDS[kind], omega, iterations, gap, x_out,
                               P_out, gains, value, log_value, status)
     weights = np.stack([omega, 1.0 - omega], axis=-1)
     index = np.flatnonzero(status)
@@ -117,7 +118,7 @@ def weighted(est, weights, kind, W, numpy_path):
     status = np.empty(size, dtype=np.int8)
     x_out, P_out = np.empty((size, n)), np.empty((size, n, n))
     gains = np.empty((size, count, n, n))
-    _module().weighted_fusion(x, L, w, Wk, _KINDS[kind], x_out, P_out, gains, value,
+    _kernel("weighted_fusion", size)(x, L, w, Wk, _KINDS[kind], x_out, P_out, gains, value,
                               log_value, status)
     index = np.flatnonzero(status)
     if index.size:

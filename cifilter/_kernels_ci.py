@@ -525,3 +525,10 @@ def weighted_fusion(x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_
                 out_status[b] = 2
                 continue
             out_status[b] = 0
+
+
+# The same kernels compiled without threads, for batches of at most one chunk (a single
+# fusion above all): waking a thread pool costs more than such a batch, and much more on a
+# loaded machine (prange runs as range here).
+ci_pair_optimal_serial = _jit(ci_pair_optimal.py_func)
+weighted_fusion_serial = _jit(weighted_fusion.py_func)
