@@ -1,13 +1,15 @@
 """Compiled (numba) kernels of the Covariance Intersection family, one problem per item.
 
 Imported only by :mod:`cifilter._kernels` when the numba backend is used (importing cifilter
-never imports this module). Every kernel runs the numpy path's method item by item, with
-the same formulas in the same order (``_ci_weights``, ``_information``, ``_optimize``),
-``prange`` over chunks of the batch with the scratch arrays allocated once per chunk (none
-inside the per-item loop), and reports per item a ``status``: 0 done, else the item is
-handed back to the numpy path (a diagonalisation that is not trusted, a fused information
-or covariance that is not numerically positive definite: there the numpy path decides,
-re-solves or raises its usual error).
+never imports this module). Each kernel is a driver around one per-item function that runs
+the numpy path's method with the same formulas in the same order (``_ci_weights``,
+``_information``, ``_optimize``): threaded, ``prange`` over chunks of the batch with the
+scratch arrays allocated once per chunk (none inside the per-item loop), or ``*_serial`` for
+small batches, where waking a thread pool costs more than the batch. Each
+item gets a ``status``: 0 done, else the item is handed back to the numpy path (a
+diagonalisation that is not trusted, a fused information or covariance that is not
+numerically positive definite: there the numpy path decides, re-solves or raises its usual
+error).
 """
 
 import math
@@ -232,6 +234,172 @@ def _report(P, R, W, n, kind, out_value, out_log, b):
     return True
 
 
+@_jit
+def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, out_K,
+               out_value, out_log, out_status, work2, work1):
+    """One item of :func:`ci_pair_optimal` (``work*``: its scratch arrays)."""
+    n = x.shape[2]
+    L1i = work2[0]
+    S = work2[1]
+    Tmp = work2[2]
+    U = work2[3]
+    T = work2[4]
+    K1 = work2[5]
+    M1 = work2[6]
+    M2 = work2[7]
+    Pf = work2[8]
+    R = work2[9]
+    lam = work1[0]
+    a = work1[1]
+    c = work1[2]
+    ca = work1[3]
+    e = work1[4]
+    L1 = L[b, 0]
+    L2 = L[b, 1]
+    _lower_inverse(L1, L1i, n)
+    # S = L1^-1 P2 L1^-T, symmetrised
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += L1i[i, k] * P[b, 1, k, j]
+            Tmp[i, j] = s
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += Tmp[i, k] * L1i[j, k]
+            S[i, j] = s
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = 0.5 * (S[i, j] + S[j, i])
+            S[i, j] = s
+            S[j, i] = s
+    if not _jacobi_eigh(S, lam, U, n):
+        out_status[b] = 1
+        return
+    # T = L1 U
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(i + 1):
+                s += L1[i, k] * U[k, j]
+            T[i, j] = s
+    usable = True
+    lam_lo = math.inf
+    lam_hi = -math.inf
+    for k in range(n):
+        if not (lam[k] > 0.0) or not math.isfinite(lam[k]):
+            usable = False
+        lam_lo = min(lam_lo, lam[k])
+        lam_hi = max(lam_hi, lam[k])
+    conditioning = max(_diagonal_spread_squared(L1, n), _diagonal_spread_squared(L2, n))
+    if (not usable or not (lam_hi / lam_lo <= DIAGONAL_TRUST)
+            or not (conditioning <= DIAGONAL_TRUST)):
+        out_status[b] = 1
+        return
+    for k in range(n):
+        a[k] = lam[k] - 1.0
+    if kind == KIND_DET:
+        scale = float(n)
+    else:
+        wi = b if W.shape[0] > 1 else 0
+        scale = 0.0
+        for k in range(n):
+            s = 0.0
+            if kind == KIND_TRACE:
+                for i in range(n):
+                    s += T[i, k] * T[i, k]
+            else:
+                for i in range(n):
+                    for j in range(n):
+                        s += T[i, k] * W[wi, i, j] * T[j, k]
+            c[k] = s
+            ca[k] = s * (a[k] + 1.0) * a[k]
+        tr2 = 0.0
+        tr1 = 0.0
+        for k in range(n):
+            tr2 += c[k] * (a[k] + 1.0)
+            tr1 += c[k]
+        scale = tr2 + tr1
+    omega, iterations = _minimize_interval(a, ca, n, kind, scale)
+    if not math.isfinite(omega):
+        omega = 0.5
+    slope, _ = _pair_derivative(omega, a, ca, n, kind)
+    gap = 0.5 * (abs(slope) + (2.0 * omega - 1.0) * slope)
+    if kind != KIND_DET:
+        value = 0.0
+        for k in range(n):
+            value += c[k] * (a[k] + 1.0) / (1.0 + omega * a[k])
+        gap = gap / value
+    if not math.isfinite(gap):
+        out_status[b] = 1
+        return
+    # assembly (_fuse_diagonalised): K1 = omega T diag(e) (U^T L1^-1)
+    if omega == 1.0:
+        for i in range(n):
+            for j in range(n):
+                K1[i, j] = 1.0 if i == j else 0.0
+    else:
+        for k in range(n):
+            e[k] = lam[k] / (1.0 + omega * (lam[k] - 1.0))
+        for i in range(n):  # Tmp = U^T L1^-1
+            for j in range(n):
+                s = 0.0
+                for k in range(j, n):
+                    s += U[k, i] * L1i[k, j]
+                Tmp[i, j] = s
+        for i in range(n):
+            for j in range(n):
+                s = 0.0
+                for k in range(n):
+                    s += (T[i, k] * e[k]) * Tmp[k, j]
+                K1[i, j] = omega * s
+    # M1 = K1 L1 / sqrt(omega), M2 = (I - K1) L2 / sqrt(1 - omega)
+    r1 = math.sqrt(omega) if omega > 0.0 else 0.0
+    r2 = math.sqrt(1.0 - omega) if omega < 1.0 else 0.0
+    for i in range(n):
+        for j in range(n):
+            s1 = 0.0
+            s2 = 0.0
+            for k in range(j, n):
+                s1 += K1[i, k] * L1[k, j]
+                s2 += ((1.0 if i == k else 0.0) - K1[i, k]) * L2[k, j]
+            M1[i, j] = s1 / r1 if omega > 0.0 else 0.0
+            M2[i, j] = s2 / r2 if omega < 1.0 else 0.0
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += M1[i, k] * M1[j, k]
+            t = 0.0
+            for k in range(n):
+                t += M2[i, k] * M2[j, k]
+            Pf[i, j] = s + t
+    for i in range(n):
+        for j in range(i, n):
+            s = 0.5 * (Pf[i, j] + Pf[j, i])
+            out_P[b, i, j] = s
+            out_P[b, j, i] = s
+            Pf[i, j] = s
+            Pf[j, i] = s
+    for i in range(n):
+        s = 0.0
+        for k in range(n):
+            s += K1[i, k] * (x[b, 0, k] - x[b, 1, k])
+        out_x[b, i] = x[b, 1, i] + s
+        for j in range(n):
+            out_K[b, 0, i, j] = K1[i, j]
+            out_K[b, 1, i, j] = (1.0 if i == j else 0.0) - K1[i, j]
+    out_omega[b] = omega
+    out_iter[b] = iterations
+    out_gap[b] = gap
+    if kind != KIND_NONE and not _report(Pf, R, W, n, kind, out_value, out_log, b):
+        out_status[b] = 2
+        return
+    out_status[b] = 0
+
+
 @_jit_parallel
 def ci_pair_optimal(x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, out_K,
                     out_value, out_log, out_status):
@@ -246,166 +414,133 @@ def ci_pair_optimal(x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P
     n = x.shape[2]
     chunks = (size + _CHUNK - 1) // _CHUNK
     for chunk in prange(chunks):
-        L1i = np.empty((n, n))
-        S = np.empty((n, n))
-        Tmp = np.empty((n, n))
-        U = np.empty((n, n))
-        T = np.empty((n, n))
-        K1 = np.empty((n, n))
-        M1 = np.empty((n, n))
-        M2 = np.empty((n, n))
-        Pf = np.empty((n, n))
-        R = np.empty((n, n))
-        lam = np.empty(n)
-        a = np.empty(n)
-        c = np.empty(n)
-        ca = np.empty(n)
-        e = np.empty(n)
+        work2 = np.empty((10, n, n))
+        work1 = np.empty((5, n))
         for b in range(chunk * _CHUNK, min(size, (chunk + 1) * _CHUNK)):
-            L1 = L[b, 0]
-            L2 = L[b, 1]
-            _lower_inverse(L1, L1i, n)
-            # S = L1^-1 P2 L1^-T, symmetrised
-            for i in range(n):
-                for j in range(n):
-                    s = 0.0
-                    for k in range(n):
-                        s += L1i[i, k] * P[b, 1, k, j]
-                    Tmp[i, j] = s
-            for i in range(n):
-                for j in range(n):
-                    s = 0.0
-                    for k in range(n):
-                        s += Tmp[i, k] * L1i[j, k]
-                    S[i, j] = s
-            for i in range(n):
-                for j in range(i + 1, n):
-                    s = 0.5 * (S[i, j] + S[j, i])
-                    S[i, j] = s
-                    S[j, i] = s
-            if not _jacobi_eigh(S, lam, U, n):
-                out_status[b] = 1
-                continue
-            # T = L1 U
-            for i in range(n):
-                for j in range(n):
-                    s = 0.0
-                    for k in range(i + 1):
-                        s += L1[i, k] * U[k, j]
-                    T[i, j] = s
-            usable = True
-            lam_lo = math.inf
-            lam_hi = -math.inf
-            for k in range(n):
-                if not (lam[k] > 0.0) or not math.isfinite(lam[k]):
-                    usable = False
-                lam_lo = min(lam_lo, lam[k])
-                lam_hi = max(lam_hi, lam[k])
-            conditioning = max(_diagonal_spread_squared(L1, n), _diagonal_spread_squared(L2, n))
-            if (not usable or not (lam_hi / lam_lo <= DIAGONAL_TRUST)
-                    or not (conditioning <= DIAGONAL_TRUST)):
-                out_status[b] = 1
-                continue
-            for k in range(n):
-                a[k] = lam[k] - 1.0
-            if kind == KIND_DET:
-                scale = float(n)
-            else:
-                wi = b if W.shape[0] > 1 else 0
-                scale = 0.0
-                for k in range(n):
-                    s = 0.0
-                    if kind == KIND_TRACE:
-                        for i in range(n):
-                            s += T[i, k] * T[i, k]
-                    else:
-                        for i in range(n):
-                            for j in range(n):
-                                s += T[i, k] * W[wi, i, j] * T[j, k]
-                    c[k] = s
-                    ca[k] = s * (a[k] + 1.0) * a[k]
-                tr2 = 0.0
-                tr1 = 0.0
-                for k in range(n):
-                    tr2 += c[k] * (a[k] + 1.0)
-                    tr1 += c[k]
-                scale = tr2 + tr1
-            omega, iterations = _minimize_interval(a, ca, n, kind, scale)
-            if not math.isfinite(omega):
-                omega = 0.5
-            slope, _ = _pair_derivative(omega, a, ca, n, kind)
-            gap = 0.5 * (abs(slope) + (2.0 * omega - 1.0) * slope)
-            if kind != KIND_DET:
-                value = 0.0
-                for k in range(n):
-                    value += c[k] * (a[k] + 1.0) / (1.0 + omega * a[k])
-                gap = gap / value
-            if not math.isfinite(gap):
-                out_status[b] = 1
-                continue
-            # assembly (_fuse_diagonalised): K1 = omega T diag(e) (U^T L1^-1)
-            if omega == 1.0:
-                for i in range(n):
-                    for j in range(n):
-                        K1[i, j] = 1.0 if i == j else 0.0
-            else:
-                for k in range(n):
-                    e[k] = lam[k] / (1.0 + omega * (lam[k] - 1.0))
-                for i in range(n):  # Tmp = U^T L1^-1
-                    for j in range(n):
-                        s = 0.0
-                        for k in range(j, n):
-                            s += U[k, i] * L1i[k, j]
-                        Tmp[i, j] = s
-                for i in range(n):
-                    for j in range(n):
-                        s = 0.0
-                        for k in range(n):
-                            s += (T[i, k] * e[k]) * Tmp[k, j]
-                        K1[i, j] = omega * s
-            # M1 = K1 L1 / sqrt(omega), M2 = (I - K1) L2 / sqrt(1 - omega)
-            r1 = math.sqrt(omega) if omega > 0.0 else 0.0
-            r2 = math.sqrt(1.0 - omega) if omega < 1.0 else 0.0
-            for i in range(n):
-                for j in range(n):
-                    s1 = 0.0
-                    s2 = 0.0
-                    for k in range(j, n):
-                        s1 += K1[i, k] * L1[k, j]
-                        s2 += ((1.0 if i == k else 0.0) - K1[i, k]) * L2[k, j]
-                    M1[i, j] = s1 / r1 if omega > 0.0 else 0.0
-                    M2[i, j] = s2 / r2 if omega < 1.0 else 0.0
-            for i in range(n):
-                for j in range(n):
-                    s = 0.0
-                    for k in range(n):
-                        s += M1[i, k] * M1[j, k]
-                    t = 0.0
-                    for k in range(n):
-                        t += M2[i, k] * M2[j, k]
-                    Pf[i, j] = s + t
-            for i in range(n):
-                for j in range(i, n):
-                    s = 0.5 * (Pf[i, j] + Pf[j, i])
-                    out_P[b, i, j] = s
-                    out_P[b, j, i] = s
-                    Pf[i, j] = s
-                    Pf[j, i] = s
-            for i in range(n):
+            _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P,
+                       out_K, out_value, out_log, out_status, work2, work1)
+
+
+@_jit
+def ci_pair_optimal_serial(x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P,
+                           out_K, out_value, out_log, out_status):
+    """:func:`ci_pair_optimal` without threads (small batches)."""
+    n = x.shape[2]
+    work2 = np.empty((10, n, n))
+    work1 = np.empty((5, n))
+    for b in range(x.shape[0]):
+        _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, out_K,
+                   out_value, out_log, out_status, work2, work1)
+
+
+@_jit
+def _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_log,
+                   out_status, work2, work1, work3):
+    """One item of :func:`weighted_fusion` (``work*``: its scratch arrays)."""
+    count = x.shape[1]
+    n = x.shape[2]
+    J = work2[0]
+    R = work2[1]
+    Ri = work2[2]
+    C = work2[3]
+    Bk = work2[4]
+    M = work2[5]
+    Pf = work2[6]
+    rem = work2[7]
+    xf = work1[0]
+    Li = work3
+    for k in range(count):
+        _lower_inverse(L[b, k], Li[k], n)
+    # J = sum_k w_k L_k^-T L_k^-1 (lower triangle)
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(count):
+                t = 0.0
+                for m in range(i, n):
+                    t += Li[k, m, i] * Li[k, m, j]
+                s += weights[b, k] * t
+            J[i, j] = s
+    if not _cholesky(J, R, n) or not _numerically_positive_definite(R, n):
+        out_status[b] = 1
+        return
+    _lower_inverse(R, Ri, n)
+    reference = 0
+    for k in range(1, count):
+        if weights[b, k] > weights[b, reference]:
+            reference = k
+    for i in range(n):
+        for j in range(n):
+            rem[i, j] = 1.0 if i == j else 0.0
+        xf[i] = x[b, reference, i]
+    for k in range(count):
+        if k == reference:
+            continue
+        w = weights[b, k]
+        # K_k = w_k (B_k L_k^-1), B_k = R^-T C_k, C_k = R^-1 L_k^-T (as numpy)
+        for i in range(n):
+            for j in range(n):
                 s = 0.0
-                for k in range(n):
-                    s += K1[i, k] * (x[b, 0, k] - x[b, 1, k])
-                out_x[b, i] = x[b, 1, i] + s
-                for j in range(n):
-                    out_K[b, 0, i, j] = K1[i, j]
-                    out_K[b, 1, i, j] = (1.0 if i == j else 0.0) - K1[i, j]
-            out_omega[b] = omega
-            out_iter[b] = iterations
-            out_gap[b] = gap
-            if kind != KIND_NONE and not _report(Pf, R, W, n, kind, out_value, out_log, b):
-                out_status[b] = 2
-                continue
-            out_status[b] = 0
+                for m in range(i + 1):
+                    s += Ri[i, m] * Li[k, j, m]
+                C[i, j] = s
+        for i in range(n):
+            for j in range(n):
+                s = 0.0
+                for m in range(i, n):
+                    s += Ri[m, i] * C[m, j]
+                Bk[i, j] = s
+        for i in range(n):
+            for j in range(n):
+                s = 0.0
+                for m in range(j, n):
+                    s += Bk[i, m] * Li[k, m, j]
+                value = w * s
+                out_K[b, k, i, j] = value
+                rem[i, j] -= value
+    for i in range(n):
+        for j in range(n):
+            out_K[b, reference, i, j] = rem[i, j]
+    for k in range(count):
+        if k == reference:
+            continue
+        for i in range(n):
+            s = 0.0
+            for j in range(n):
+                s += out_K[b, k, i, j] * (x[b, k, j] - x[b, reference, j])
+            xf[i] += s
+    for i in range(n):
+        for j in range(n):
+            Pf[i, j] = 0.0
+    for k in range(count):
+        w = weights[b, k]
+        if not w > 0.0:
+            continue
+        r = math.sqrt(w)
+        for i in range(n):
+            for j in range(n):
+                s = 0.0
+                for m in range(j, n):
+                    s += out_K[b, k, i, m] * L[b, k, m, j]
+                M[i, j] = s / r
+        for i in range(n):
+            for j in range(n):
+                s = 0.0
+                for m in range(n):
+                    s += M[i, m] * M[j, m]
+                Pf[i, j] += s
+    for i in range(n):
+        out_x[b, i] = xf[i]
+        for j in range(i, n):
+            s = 0.5 * (Pf[i, j] + Pf[j, i])
+            out_P[b, i, j] = s
+            out_P[b, j, i] = s
+            Pf[i, j] = s
+            Pf[j, i] = s
+    if kind != KIND_NONE and not _report(Pf, R, W, n, kind, out_value, out_log, b):
+        out_status[b] = 2
+        return
+    out_status[b] = 0
 
 
 @_jit_parallel
@@ -418,117 +553,25 @@ def weighted_fusion(x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_
     2 the fused covariance is not.
     """
     size = x.shape[0]
-    count = x.shape[1]
     n = x.shape[2]
     chunks = (size + _CHUNK - 1) // _CHUNK
     for chunk in prange(chunks):
-        Li = np.empty((count, n, n))
-        J = np.empty((n, n))
-        R = np.empty((n, n))
-        Ri = np.empty((n, n))
-        C = np.empty((n, n))
-        Bk = np.empty((n, n))
-        M = np.empty((n, n))
-        Pf = np.empty((n, n))
-        rem = np.empty((n, n))
-        xf = np.empty(n)
+        work2 = np.empty((8, n, n))
+        work1 = np.empty((1, n))
+        work3 = np.empty((x.shape[1], n, n))
         for b in range(chunk * _CHUNK, min(size, (chunk + 1) * _CHUNK)):
-            for k in range(count):
-                _lower_inverse(L[b, k], Li[k], n)
-            # J = sum_k w_k L_k^-T L_k^-1 (lower triangle)
-            for i in range(n):
-                for j in range(i + 1):
-                    s = 0.0
-                    for k in range(count):
-                        t = 0.0
-                        for m in range(i, n):
-                            t += Li[k, m, i] * Li[k, m, j]
-                        s += weights[b, k] * t
-                    J[i, j] = s
-            if not _cholesky(J, R, n) or not _numerically_positive_definite(R, n):
-                out_status[b] = 1
-                continue
-            _lower_inverse(R, Ri, n)
-            reference = 0
-            for k in range(1, count):
-                if weights[b, k] > weights[b, reference]:
-                    reference = k
-            for i in range(n):
-                for j in range(n):
-                    rem[i, j] = 1.0 if i == j else 0.0
-                xf[i] = x[b, reference, i]
-            for k in range(count):
-                if k == reference:
-                    continue
-                w = weights[b, k]
-                # K_k = w_k (B_k L_k^-1), B_k = R^-T C_k, C_k = R^-1 L_k^-T (as numpy)
-                for i in range(n):
-                    for j in range(n):
-                        s = 0.0
-                        for m in range(i + 1):
-                            s += Ri[i, m] * Li[k, j, m]
-                        C[i, j] = s
-                for i in range(n):
-                    for j in range(n):
-                        s = 0.0
-                        for m in range(i, n):
-                            s += Ri[m, i] * C[m, j]
-                        Bk[i, j] = s
-                for i in range(n):
-                    for j in range(n):
-                        s = 0.0
-                        for m in range(j, n):
-                            s += Bk[i, m] * Li[k, m, j]
-                        value = w * s
-                        out_K[b, k, i, j] = value
-                        rem[i, j] -= value
-            for i in range(n):
-                for j in range(n):
-                    out_K[b, reference, i, j] = rem[i, j]
-            for k in range(count):
-                if k == reference:
-                    continue
-                for i in range(n):
-                    s = 0.0
-                    for j in range(n):
-                        s += out_K[b, k, i, j] * (x[b, k, j] - x[b, reference, j])
-                    xf[i] += s
-            for i in range(n):
-                for j in range(n):
-                    Pf[i, j] = 0.0
-            for k in range(count):
-                w = weights[b, k]
-                if not w > 0.0:
-                    continue
-                r = math.sqrt(w)
-                for i in range(n):
-                    for j in range(n):
-                        s = 0.0
-                        for m in range(j, n):
-                            s += out_K[b, k, i, m] * L[b, k, m, j]
-                        M[i, j] = s / r
-                for i in range(n):
-                    for j in range(n):
-                        s = 0.0
-                        for m in range(n):
-                            s += M[i, m] * M[j, m]
-                        Pf[i, j] += s
-            for i in range(n):
-                out_x[b, i] = xf[i]
-                for j in range(i, n):
-                    s = 0.5 * (Pf[i, j] + Pf[j, i])
-                    out_P[b, i, j] = s
-                    out_P[b, j, i] = s
-                    Pf[i, j] = s
-                    Pf[j, i] = s
-            if kind != KIND_NONE and not _report(Pf, R, W, n, kind, out_value, out_log, b):
-                out_status[b] = 2
-                continue
-            out_status[b] = 0
+            _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value,
+                           out_log, out_status, work2, work1, work3)
 
 
-# The same kernels compiled without threads, for batches of at most one chunk (a single
-# fusion above all): waking a thread pool costs more than such a batch, and much more on a
-# loaded machine (prange runs as range here).
-ci_pair_optimal_serial = _jit(ci_pair_optimal.py_func)
-weighted_fusion_serial = _jit(weighted_fusion.py_func)
+@_jit
+def weighted_fusion_serial(x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_log,
+                           out_status):
+    """:func:`weighted_fusion` without threads (small batches)."""
+    n = x.shape[2]
+    work2 = np.empty((8, n, n))
+    work1 = np.empty((1, n))
+    work3 = np.empty((x.shape[1], n, n))
+    for b in range(x.shape[0]):
+        _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_log,
+                       out_status, work2, work1, work3)

@@ -6,8 +6,8 @@ conditioning contract, certified gaps, ``converged`` flags and ``info`` keys, re
 to rounding): vectorised numpy, always available, and compiled kernels
 (``numba``, the optional extra ``pip install cifilter[fast]``), parallel over the batch.
 
-``"auto"`` (the default) uses the kernels when numba is installed and the inputs are a
-float64 batch of at least :data:`AUTO_MIN_BATCH` problems; ``"numpy"`` never does;
+``"auto"`` (the default) uses the kernels when numba is installed and the validated inputs
+(float64) are a batch of at least :data:`AUTO_MIN_BATCH` problems; ``"numpy"`` never does;
 ``"numba"`` always does where a kernel exists (even for one problem). Importing cifilter
 never imports numba; the kernels are compiled on first use and cached on disk.
 See ``docs/backend.rst``.
@@ -23,10 +23,12 @@ __all__ = ["AUTO_MIN_BATCH", "BACKENDS", "backend", "get_backend", "numba_availa
 BACKENDS = ("auto", "numpy", "numba")
 """The accepted backend names."""
 
-AUTO_MIN_BATCH = 64
-"""Under ``"auto"``, batches of at least this many problems go to the compiled kernels
-(measured with ``benchmarks/bench_ci.py``: below it the call overhead of the kernels and
-the fallbacks is not repaid; see ``docs/backend.rst``)."""
+AUTO_MIN_BATCH = 8
+"""Under ``"auto"``, batches of at least this many problems go to the compiled kernels.
+
+Measured (``docs/backend.rst``): the kernels are faster than numpy for every batch of 4x4
+pairs from 4 problems up; single fusions (no batch axes) stay on numpy under ``"auto"``, so
+that a filter's ``fuse`` never imports numba or waits for a compile."""
 
 _state = threading.local()
 _default = ["auto"]
@@ -139,15 +141,10 @@ def backend(name):
     name : {"auto", "numpy", "numba"}
         As in :func:`set_backend`.
 
-    Yields
-    ------
-    str
-        ``name``.
-
     Returns
     -------
     contextmanager
-        A context manager.
+        A context manager; ``with backend(name) as chosen`` gives ``chosen == name``.
 
     Raises
     ------

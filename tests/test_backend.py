@@ -20,6 +20,7 @@ from worst_case import assert_bound_holds
 
 import cifilter
 from cifilter import IllConditionedError, covariance_intersection, naive_fusion
+from cifilter._kernels import THREADED_MIN
 from cifilter.backend import AUTO_MIN_BATCH, BACKENDS, numba_available
 
 needs_numba = pytest.mark.skipif(not numba_available(), reason="numba is not installed")
@@ -196,18 +197,21 @@ def test_weights_rules_and_naive_fusion_agree_with_numpy(batch, rule, criterion)
 
 
 @needs_numba
-def test_large_batches_go_to_the_kernels_under_auto_and_agree():
-    """A batch above the threshold (auto uses the kernels) of random 4x4 pairs."""
+@pytest.mark.parametrize("size", [AUTO_MIN_BATCH, THREADED_MIN + 3])
+def test_batches_go_to_the_kernels_under_auto_and_agree(size):
+    """Batches above the threshold of auto, on the serial and the threaded kernels."""
     rng = np.random.default_rng(5)
-    A = rng.standard_normal((3 * AUTO_MIN_BATCH, 2, 4, 4))
+    A = rng.standard_normal((size, 2, 4, 4))
     Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
-    xs = rng.standard_normal((3 * AUTO_MIN_BATCH, 2, 4))
+    xs = rng.standard_normal((size, 2, 4))
     for criterion in ("trace", "det"):
         a = covariance_intersection(xs, Ps, criterion)
         b = _run("numpy", lambda criterion=criterion: covariance_intersection(xs, Ps, criterion))
         _assert_same(a, b, rtol=1e-10)
         np.testing.assert_array_equal(a.info["iterations"], b.info["iterations"])
         assert a.info["converged"].all()
+    a = covariance_intersection(xs, Ps, omega="fast")
+    _assert_same(a, _run("numpy", lambda: covariance_intersection(xs, Ps, omega="fast")))
 
 
 @needs_numba
