@@ -92,18 +92,18 @@ start = time.perf_counter()
 import numpy as np
 import cifilter
 rng = np.random.default_rng(0)
-A = rng.standard_normal((300, 2, 4, 4))
+A = rng.standard_normal((3000, 2, 4, 4))  # above THREADED_MIN: the threaded kernels
 Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
-xs = rng.standard_normal((300, 2, 4))
+xs = rng.standard_normal((3000, 2, 4))
 out = []
 with cifilter.backend("numba"):
     for label, call in [
         ("optimal, threaded", lambda: cifilter.covariance_intersection(xs, Ps)),
-        ("optimal, serial", lambda: cifilter.covariance_intersection(xs[:1], Ps[:1])),
+        ("optimal, serial", lambda: cifilter.covariance_intersection(xs[:10], Ps[:10])),
         ("given weights, threaded",
          lambda: cifilter.covariance_intersection(xs, Ps, omega=0.5)),
         ("given weights, serial",
-         lambda: cifilter.covariance_intersection(xs[:1], Ps[:1], omega=0.5)),
+         lambda: cifilter.covariance_intersection(xs[:10], Ps[:10], omega=0.5)),
     ]:
         t = time.perf_counter()
         call()
