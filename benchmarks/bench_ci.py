@@ -126,7 +126,11 @@ def first_call_times():
 
 
 def rate(count, seconds):
-    return f"{count / seconds / 1e6:6.2f} M/s"
+    """Fusions per second, in M/s or k/s."""
+    per_second = count / seconds
+    if per_second >= 1e5:
+        return f"{per_second / 1e6:6.2f} M/s"
+    return f"{per_second / 1e3:6.1f} k/s"
 
 
 def main():
