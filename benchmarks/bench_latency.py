@@ -15,7 +15,10 @@ time of filterpy's ``update`` on the same filter. Run it with
     python benchmarks/bench_latency.py --markdown # the same as a Markdown table (README)
 
 A tree other than the installed one is timed with ``--tree PATH`` (it is put first on
-``sys.path``), so an older checkout can be measured with the same script.
+``sys.path``), so an older checkout can be measured with the same script. ``--backend``
+selects the backend of the CI family (``cifilter.set_backend``; default ``auto``, under
+which single calls stay on numpy), e.g. ``--backend numba --only "ci (trace),ci (det)"``
+to time the compiled kernels on the single-call path.
 """
 
 import argparse
@@ -111,8 +114,10 @@ def cases(cifilter):
     return both, table
 
 
-def run(tree=None, number=200, repeat=7, only=None):
+def run(tree=None, number=200, repeat=7, only=None, backend=None):
     cifilter, FilterpyKF = _setup(tree)
+    if backend is not None:
+        cifilter.set_backend(backend)
     F, H, Q, R = _model()
     xs, Ps = _estimates()
     both, table = cases(cifilter)
@@ -177,9 +182,11 @@ def main(argv=None):
     parser.add_argument("--repeat", type=int, default=7, help="timing loops (the best counts)")
     parser.add_argument("--markdown", action="store_true", help="print a Markdown table")
     parser.add_argument("--only", help="comma-separated labels of the rows to time")
+    parser.add_argument("--backend", choices=("auto", "numpy", "numba"),
+                        help="backend of the CI family (cifilter.set_backend)")
     args = parser.parse_args(argv)
     only = None if args.only is None else set(args.only.split(","))
-    update, rows = run(args.tree, args.number, args.repeat, only)
+    update, rows = run(args.tree, args.number, args.repeat, only, args.backend)
     us = 1e6
     if args.markdown:
         print(f"filterpy `KalmanFilter.update`: {update * us:.1f} µs\n")

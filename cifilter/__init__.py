@@ -28,6 +28,7 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
 
 from . import _rules  # noqa: F401  (registers the built-in rules, in its explicit order)
 from ._linalg import IllConditionedError, mahalanobis_sq
+from .backend import get_backend, set_backend, use_backend
 from .bayes import bayesian_fusion, sample_joint_covariances
 from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
 from .cross import cross_covariance_fusion
@@ -66,6 +67,7 @@ __all__ = [
     "cross_covariance_fusion",
     "ellipsoidal_intersection",
     "fuse",
+    "get_backend",
     "get_method",
     "horizon_study",
     "inverse_covariance_intersection",
@@ -80,6 +82,8 @@ __all__ = [
     "register_method",
     "sample_joint_covariances",
     "sampling_ci",
+    "set_backend",
     "split_covariance_intersection",
     "steady_state_covariance",
+    "use_backend",
 ]

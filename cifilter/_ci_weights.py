@@ -11,6 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import _kernels
 from ._criteria import GAP_TOL, certified_gap, criterion_gradient, criterion_of_factor
 from ._information import (
     DIAGONAL_TRUST,
@@ -375,7 +376,8 @@ def _single_pair(est, kind, W):
     return weights, info, (x, 0.5 * (P + P.T), gains)
 
 
-def optimal_weights(est, kind, W, method="auto", L_inv=None):
+def optimal_weights(est, kind, W, method="auto", L_inv=None, *, report=False,
+                    compiled=True):
     """Criterion-optimal weights, certified: ``(weights, info, (x, P, gains))``.
 
     N = 2 (``"diagonalise"``): the O(n)-per-iteration diagonalised Newton method; where
@@ -385,7 +387,25 @@ def optimal_weights(est, kind, W, method="auto", L_inv=None):
     active-set Newton method on the simplex. The fused estimate is the bound of the
     returned gains in both cases (see ``_information``); ``info`` has ``iterations``,
     ``converged`` (certified gap at most ``GAP_TOL``), ``gap`` and ``solver``.
+
+    With ``report=True`` a fourth item is returned: the criterion report of ``P``
+    (:func:`cifilter._criteria.criterion_report`) where the compiled kernels computed it,
+    else None. ``compiled=False`` keeps the numpy path whatever the backend
+    (:mod:`cifilter.backend`); the kernels hand the items they cannot certify back to it.
     """
+    if compiled and est.count == 2 and method != "simplex":
+        def numpy_path(sub, sub_W):
+            return optimal_weights(sub, kind, sub_W, method, compiled=False)
+
+        fast = _kernels.optimal_pair(est, kind, W, numpy_path)
+        if fast is not None:
+            return fast if report else fast[:3]
+    result = _optimal_weights(est, kind, W, method, L_inv)
+    return result + (None,) if report else result
+
+
+def _optimal_weights(est, kind, W, method, L_inv):
+    """:func:`optimal_weights` on the numpy path."""
     if est.count == 2 and method != "simplex" and not est.batch_shape:
         single = _single_pair(est, kind, W)
         if single is not None:

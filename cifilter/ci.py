@@ -10,6 +10,7 @@ cross-covariance of the inputs. The weights are chosen by minimising a criterion
 ``P`` (trace, determinant or ``trace(W P)``) or by a fast non-iterative rule.
 """
 
+from . import _kernels
 from ._ci_weights import FAST_OMEGA_RULES, optimal_weights
 from ._criteria import criterion_report, parse_criterion
 from ._information import weighted_fusion
@@ -173,9 +174,9 @@ def _covariance_intersection(est, criterion="trace", omega=None):
     """The ``"ci"`` rule on validated estimates (the core of :func:`covariance_intersection`)."""
     kind, W = parse_criterion(criterion, est.dim)
     info = {"criterion": kind}
-    fused = None
+    fused = report = None
     if omega is None:
-        weights, solver_info, fused = optimal_weights(est, kind, W)
+        weights, solver_info, fused, report = optimal_weights(est, kind, W, report=True)
         info.update(rule="optimal", **solver_info)
     elif isinstance(omega, str):
         if omega not in FAST_OMEGA_RULES:
@@ -189,10 +190,14 @@ def _covariance_intersection(est, criterion="trace", omega=None):
         weights = check_weights(omega, est.count, batch_shape=est.batch_shape)
         info["rule"] = "fixed"
     if fused is None:
-        assembled = weighted_fusion(est.x, est.L, weights)
-        fused = (assembled.x, assembled.P, assembled.gains)
+        compiled = _kernels.weighted(est, weights, kind, W, weighted_fusion)
+        if compiled is None:
+            assembled = weighted_fusion(est.x, est.L, weights)
+            fused = (assembled.x, assembled.P, assembled.gains)
+        else:
+            fused, report = compiled
     x, P, gains = fused
-    info.update(criterion_report(P, kind, W))
+    info.update(criterion_report(P, kind, W) if report is None else report)
     return FusionResult(restore_style(x, est.column), P, "ci", weights, gains, info)
 
 

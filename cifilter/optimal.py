@@ -4,6 +4,7 @@
 
 import numpy as np
 
+from . import _kernels
 from ._information import weighted_fusion
 from ._linalg import MAX_CONDITION, cho_inverse, cho_solve, symmetrize
 from ._validation import (
@@ -67,8 +68,12 @@ def naive_fusion(xs, Ps):
 def _naive_fusion(est):
     """The ``"naive"`` rule on validated estimates (the core of :func:`naive_fusion`)."""
     weights = np.ones(est.batch_shape + (est.count,))
-    fused = weighted_fusion(est.x, est.L, weights)
-    x, P, gains = fused.x, fused.P, fused.gains
+    compiled = _kernels.weighted(est, weights, None, None, weighted_fusion)
+    if compiled is None:
+        fused = weighted_fusion(est.x, est.L, weights)
+        x, P, gains = fused.x, fused.P, fused.gains
+    else:
+        (x, P, gains), _ = compiled
     return FusionResult(restore_style(x, est.column), P, "naive", None, gains, {}, weights)
 
 

@@ -15,6 +15,9 @@ from strategies import (
 
 from cifilter import ci_weights, covariance_intersection
 
+# every test runs on each backend (numpy, and the compiled kernels when numba is installed)
+pytestmark = pytest.mark.usefixtures("ci_backend")
+
 rng = np.random.default_rng(20261123)
 
 

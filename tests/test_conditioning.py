@@ -32,6 +32,7 @@ def zeros_like_means(Ps):
 
 
 # ----------------------------------------------------------------- conservativeness
+@pytest.mark.usefixtures("ci_backend")
 @settings(max_examples=60)
 @given(st.integers(2, 5).flatmap(lambda count: st.integers(1, 4).flatmap(
     lambda n: st.tuples(ill_conditioned_sets(count, n), st.booleans()))), criteria)
@@ -58,6 +59,7 @@ def assert_converged_or_honest(info, Ps, tol=1e-9):
         assert max(np.linalg.cond(P) for P in Ps) > 1e8, gap
 
 
+@pytest.mark.usefixtures("ci_backend")
 @settings(max_examples=40)
 @given(st.integers(2, 5).flatmap(lambda count: st.tuples(
     ill_conditioned_sets(count, 3, common_scale=False),
@@ -142,6 +144,7 @@ def _mp_gap(Ps, weights, criterion, rho=None):
         return float((max(g) - along) / scale)
 
 
+@pytest.mark.usefixtures("ci_backend")
 @settings(max_examples=25)
 @given(st.integers(2, 4).flatmap(lambda count: ill_conditioned_sets(count, 3, 1e10)), criteria)
 def test_ci_weights_are_optimal_against_a_50_digit_reference(Ps, criterion):
@@ -163,6 +166,7 @@ def test_partial_ci_delta_is_optimal_against_a_50_digit_reference(Ps, rho):
 
 
 # ----------------------------------------------------------------- permutation
+@pytest.mark.usefixtures("ci_backend")
 @settings(max_examples=40)
 @given(st.integers(2, 4).flatmap(lambda count: st.tuples(
     ill_conditioned_sets(count, 3), st.permutations(range(count)))), criteria)
@@ -183,6 +187,7 @@ def _spd(rng, n, cond):
     return (P + P.T) / 2
 
 
+@pytest.mark.usefixtures("ci_backend")
 def test_item_1_two_estimate_ci_is_conservative_at_condition_1e8():
     rng = np.random.default_rng(29)
     P1, P2 = _spd(rng, 3, 1e8), _spd(rng, 3, 1e8)
@@ -193,6 +198,7 @@ def test_item_1_two_estimate_ci_is_conservative_at_condition_1e8():
     assert_bound_holds(r.P, r.gains, [P1, P2])
 
 
+@pytest.mark.usefixtures("ci_backend")
 @pytest.mark.parametrize("cond", [1e7, 1e8, 1e9, 1e10, 1e11, 1e12])
 def test_item_1_conservative_and_positive_definite_over_the_condition_range(cond):
     rng = np.random.default_rng(int(np.log10(cond)))
@@ -203,6 +209,7 @@ def test_item_1_conservative_and_positive_definite_over_the_condition_range(cond
         assert_bound_holds(r.P, r.gains, Ps)
 
 
+@pytest.mark.usefixtures("ci_backend")
 def test_item_2_det_optimum_at_condition_1e10_is_not_a_wrong_vertex():
     rng = np.random.default_rng(0)
     Ps = [_spd(rng, 4, 1e10), _spd(rng, 4, 1e10)]
@@ -213,6 +220,7 @@ def test_item_2_det_optimum_at_condition_1e10_is_not_a_wrong_vertex():
     assert _mp_gap(Ps, r.omega, "det") <= 1e-8 + _rounding_level(Ps)
 
 
+@pytest.mark.usefixtures("ci_backend")
 def test_item_2_graded_case_finds_the_vertex():
     P1 = np.array([[1e18, 1e8], [1e8, 1.0]])
     r = covariance_intersection([[1.0, 0.0], [0.0, 1.0]], [P1, np.diag([4.0, 1.0])])
@@ -220,6 +228,7 @@ def test_item_2_graded_case_finds_the_vertex():
     assert np.trace(r.P) == pytest.approx(5.0, rel=1e-12) and r.info["converged"]
 
 
+@pytest.mark.usefixtures("ci_backend")
 def test_item_6_nearly_tied_inputs_converge_at_once():
     Ps = [np.eye(2), np.eye(2), (1 + 1e-5) * np.eye(2)]
     for criterion in ("trace", "det"):
@@ -253,6 +262,7 @@ def test_item_7_the_paper_algorithm_stays_available():
     assert r.info["solver"] == "alternating" and np.trace(r.P) == pytest.approx(2.4)
 
 
+@pytest.mark.usefixtures("ci_backend")
 def test_item_11_det_value_reports_its_logarithm_at_huge_scales():
     # omega = 1/2: P = 1.6 c I and det P = 2.56 c^2, log det P = log 2.56 + 2 log c
     for c in (1e150, 1e200):

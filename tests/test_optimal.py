@@ -15,6 +15,9 @@ from strategies import (
 from cifilter import KalmanFilter, covariance_intersection, fuse, naive_fusion, optimal_fusion
 from cifilter._linalg import IllConditionedError
 
+# every test runs on each backend (numpy, and the compiled kernels when numba is installed)
+pytestmark = pytest.mark.usefixtures("ci_backend")
+
 
 def block_diag(*blocks):
     n = sum(b.shape[0] for b in blocks)

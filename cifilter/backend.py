@@ -1,0 +1,187 @@
+"""The computational backend of the Covariance Intersection family: numpy or compiled numba.
+
+Batched Covariance Intersection (optimal, given and fast weights) and the naive fusion
+have two implementations with the same contracts (the same validation and error messages,
+conditioning contract, certified gaps, ``converged`` flags and ``info`` keys, results equal
+to rounding): vectorised numpy, always available, and compiled kernels
+(``numba``, the optional extra ``pip install cifilter[fast]``), parallel over the batch.
+
+``"auto"`` (the default) uses the kernels when numba is installed and the validated inputs
+(float64) are a batch of at least :data:`AUTO_MIN_BATCH` problems; ``"numpy"`` never does;
+``"numba"`` always does where a kernel exists (even for one problem). Importing cifilter
+never imports numba; the kernels are compiled on first use and cached on disk.
+See ``docs/backend.rst``.
+"""
+
+import contextlib
+import importlib.util
+import threading
+
+__all__ = ["AUTO_MIN_BATCH", "BACKENDS", "get_backend", "numba_available", "set_backend",
+           "use_backend"]
+
+BACKENDS = ("auto", "numpy", "numba")
+"""The accepted backend names."""
+
+AUTO_MIN_BATCH = 8
+"""Under ``"auto"``, batches of at least this many problems go to the compiled kernels.
+
+Measured (``docs/backend.rst``): the kernels are faster than numpy for every batch of 4x4
+pairs from 4 problems up; single fusions (no batch axes) stay on numpy under ``"auto"``, so
+that a filter's ``fuse`` never imports numba or waits for a compile."""
+
+_state = threading.local()
+_default = ["auto"]
+_available = []
+
+
+def _check(name):
+    if not isinstance(name, str) or name not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(map(repr, BACKENDS))}, "
+                         f"got {name!r}")
+    if name == "numba" and not numba_available():
+        raise ValueError("backend 'numba' needs the numba package "
+                         "(pip install cifilter[fast]), which is not installed")
+    return name
+
+
+def numba_available():
+    """Whether numba can be imported (checked once, without importing it).
+
+    Returns
+    -------
+    bool
+        True if the ``numba`` package is installed and not blocked.
+
+    Examples
+    --------
+    >>> from cifilter.backend import numba_available
+    >>> isinstance(numba_available(), bool)
+    True
+    """
+    if not _available:
+        import sys
+
+        if "numba" in sys.modules:
+            found = sys.modules["numba"] is not None
+        else:
+            try:
+                found = importlib.util.find_spec("numba") is not None
+            except (ImportError, ValueError):
+                found = False
+        _available.append(found)
+    return _available[0]
+
+
+def set_backend(name):
+    """Choose the backend of the Covariance Intersection family for this process.
+
+    Parameters
+    ----------
+    name : {"auto", "numpy", "numba"}
+        ``"auto"`` (the default): compiled kernels for float64 batches of at least
+        :data:`AUTO_MIN_BATCH` problems when numba is installed, numpy otherwise.
+        ``"numpy"``: always numpy. ``"numba"``: the kernels wherever one exists (also for
+        a single problem); problems a kernel cannot certify are still solved by numpy.
+
+    Returns
+    -------
+    str
+        The previous backend.
+
+    Raises
+    ------
+    ValueError
+        Unknown name, or ``"numba"`` without numba installed.
+
+    See Also
+    --------
+    use_backend : the same as a context manager (thread-local).
+    get_backend : the backend in effect.
+
+    Examples
+    --------
+    >>> import cifilter
+    >>> previous = cifilter.set_backend("numpy")
+    >>> cifilter.get_backend()
+    'numpy'
+    >>> _ = cifilter.set_backend(previous)
+    """
+    _check(name)
+    previous = get_backend()
+    _default[0] = name
+    return previous
+
+
+def get_backend():
+    """The backend in effect in this thread.
+
+    Returns
+    -------
+    str
+        ``"auto"``, ``"numpy"`` or ``"numba"``: the innermost :func:`backend` context of
+        this thread, else the process-wide choice of :func:`set_backend`.
+
+    Examples
+    --------
+    >>> import cifilter
+    >>> cifilter.get_backend() in ("auto", "numpy", "numba")
+    True
+    """
+    stack = getattr(_state, "stack", None)
+    return stack[-1] if stack else _default[0]
+
+
+@contextlib.contextmanager
+def use_backend(name):
+    """Use a backend inside a ``with`` block (this thread only), then restore the previous.
+
+    Parameters
+    ----------
+    name : {"auto", "numpy", "numba"}
+        As in :func:`set_backend`.
+
+    Returns
+    -------
+    contextmanager
+        A context manager; ``with use_backend(name) as chosen`` gives ``chosen == name``.
+
+    Raises
+    ------
+    ValueError
+        Unknown name, or ``"numba"`` without numba installed.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import cifilter
+    >>> with cifilter.use_backend("numpy"):
+    ...     r = cifilter.covariance_intersection(np.zeros((10, 2, 2)),
+    ...                                          np.broadcast_to(np.eye(2), (10, 2, 2, 2)))
+    >>> r.omega.shape
+    (10, 2)
+    """
+    _check(name)
+    stack = getattr(_state, "stack", None)
+    if stack is None:
+        stack = _state.stack = []
+    stack.append(name)
+    try:
+        yield name
+    finally:
+        stack.pop()
+
+
+def use_kernels(batch_size, *arrays):
+    """Whether the current backend sends a problem of ``batch_size`` items to the kernels.
+
+    (Private to the package; ``arrays`` must all be float64.)
+    """
+    name = get_backend()
+    if name == "numpy" or not numba_available():
+        return False
+    if any(getattr(a, "dtype", None) is None or a.dtype.char != "d" for a in arrays):
+        return False
+    if name == "numba":
+        return True
+    return batch_size >= AUTO_MIN_BATCH

@@ -1,0 +1,274 @@
+"""The backend switch (cifilter.backend) and the compiled kernels against the numpy path.
+
+The CI-family tests (test_ci.py, test_optimal.py, the CI tests of test_conditioning.py)
+run on both backends through the ``ci_backend`` fixture; here: the contract of
+``set_backend``/``get_backend``/``backend``, the agreement of the two backends on batches
+of the conditioning strategies (condition numbers up to 1e12, scales 1e-12..1e12), the
+hand-back of items the kernels cannot certify, errors, and a cifilter without numba.
+"""
+
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from strategies import ill_conditioned_sets
+from worst_case import assert_bound_holds
+
+import cifilter
+from cifilter import IllConditionedError, covariance_intersection, naive_fusion
+from cifilter._kernels import THREADED_MIN
+from cifilter.backend import AUTO_MIN_BATCH, BACKENDS, numba_available
+
+needs_numba = pytest.mark.skipif(not numba_available(), reason="numba is not installed")
+
+
+# ----------------------------------------------------------------- the switch
+def test_default_is_auto_and_set_backend_returns_the_previous():
+    assert cifilter.get_backend() == "auto"
+    previous = cifilter.set_backend("numpy")
+    try:
+        assert previous == "auto" and cifilter.get_backend() == "numpy"
+    finally:
+        assert cifilter.set_backend(previous) == "numpy"
+    assert cifilter.get_backend() == "auto"
+
+
+@pytest.mark.parametrize("name", ["NUMPY", "cuda", "", None, 1, "numpy "])
+def test_unknown_backends_are_rejected(name):
+    with pytest.raises(ValueError, match="backend must be one of 'auto', 'numpy', 'numba'"):
+        cifilter.set_backend(name)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        with cifilter.use_backend(name):
+            pass
+    assert cifilter.get_backend() == "auto"
+
+
+def test_context_manager_nests_restores_on_error_and_is_thread_local():
+    seen = []
+    with cifilter.use_backend("numpy"):
+        assert cifilter.get_backend() == "numpy"
+        with pytest.raises(RuntimeError), cifilter.use_backend("auto"):
+            assert cifilter.get_backend() == "auto"
+            raise RuntimeError
+        assert cifilter.get_backend() == "numpy"
+        thread = threading.Thread(target=lambda: seen.append(cifilter.get_backend()))
+        thread.start()
+        thread.join()
+    assert cifilter.get_backend() == "auto" and seen == ["auto"]
+    assert set(BACKENDS) == {"auto", "numpy", "numba"}
+
+
+def test_importing_cifilter_imports_no_numba():
+    code = "import sys, cifilter; print('numba' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "False"
+
+
+def test_cifilter_works_without_numba():
+    """numba blocked: the package imports, auto and numpy run, 'numba' is refused."""
+    code = """
+import sys
+sys.modules["numba"] = None  # import numba raises ImportError
+import numpy as np
+import cifilter
+from cifilter.backend import numba_available
+assert not numba_available()
+rng = np.random.default_rng(0)
+A = rng.standard_normal((200, 2, 3, 3))
+Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(3)
+xs = rng.standard_normal((200, 2, 3))
+r = cifilter.covariance_intersection(xs, Ps)
+assert r.info["converged"].all() and r.P.shape == (200, 3, 3)
+cifilter.covariance_intersection(xs, Ps, omega="fast")
+cifilter.naive_fusion(xs, Ps)
+try:
+    cifilter.set_backend("numba")
+except ValueError as error:
+    assert "numba" in str(error)
+else:
+    raise AssertionError("set_backend('numba') accepted without numba")
+assert "numba" not in [m for m in sys.modules if sys.modules[m] is not None]
+print("ok")
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
+
+
+# ----------------------------------------------------------------- agreement
+def _run(backend, call):
+    with cifilter.use_backend(backend):
+        return call()
+
+
+def _assert_same(a, b, rtol=1e-9):
+    """Two FusionResults equal to ``rtol``: omega (on the simplex, so absolutely), x and P
+    relative to the size of P, per item; the same info keys and flags."""
+    np.testing.assert_allclose(a.omega, b.omega, rtol=0, atol=rtol)
+    scale = np.abs(b.P).max(axis=(-2, -1))
+    np.testing.assert_array_less(np.abs(a.P - b.P).max(axis=(-2, -1)), rtol * scale * (1 + 1e-12))
+    sd = np.sqrt(scale)
+    np.testing.assert_array_less(np.abs(a.x - b.x).max(axis=-1), rtol * sd * 1e3 + 1e-300)
+    np.testing.assert_allclose(a.gains.sum(axis=-3), np.broadcast_to(np.eye(a.P.shape[-1]),
+                                                                       a.P.shape), atol=1e-6)
+    assert a.info.keys() == b.info.keys()
+    for key in ("converged", "solver", "rule", "criterion"):
+        if key in b.info:
+            np.testing.assert_array_equal(a.info[key], b.info[key])
+    if "log_value" in b.info:
+        # log det P moves by at most n ||P^-1 (P_a - P_b)||_2 under the difference of P
+        # (which is ill-conditioned: cond(P) times the relative difference)
+        shift = np.linalg.norm(np.linalg.solve(b.P, a.P - b.P), ord=2, axis=(-2, -1))
+        bound = b.P.shape[-1] * shift * (1 + 1e-6) + 1e-12
+        assert np.all(np.abs(a.info["log_value"] - b.info["log_value"]) <= bound)
+    elif "value" in b.info:
+        np.testing.assert_allclose(a.info["value"], b.info["value"], rtol=rtol)
+    np.testing.assert_array_equal(a.P, np.swapaxes(a.P, -1, -2))
+
+
+@st.composite
+def batches(draw, count, n, size):
+    """A batch of ``size`` problems: ill-conditioned sets (up to 1e12, common scales in
+    1e-12..1e12) and well-conditioned ones (the kernels' own territory), means of the
+    covariances' scale."""
+    Ps = []
+    for _ in range(size):
+        if draw(st.booleans()):
+            Ps.append(np.stack(draw(ill_conditioned_sets(count, n))))
+        else:
+            Ps.append(np.stack(draw(ill_conditioned_sets(count, n, max_condition=1e3))))
+    Ps = np.stack(Ps)
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    scale = np.sqrt(np.abs(np.diagonal(Ps, axis1=-2, axis2=-1)))
+    return rng.standard_normal(Ps.shape[:-1]) * scale, Ps
+
+
+criteria = st.sampled_from(["trace", "det", "weighted"])
+
+
+def _criterion(name, n):
+    return np.diag(np.arange(1.0, n + 1)) if name == "weighted" else name
+
+
+@needs_numba
+@settings(max_examples=25)
+@given(st.integers(1, 5).flatmap(lambda n: batches(2, n, 6)), criteria)
+def test_two_estimate_optimal_ci_agrees_with_numpy(batch, criterion):
+    xs, Ps = batch
+    criterion = _criterion(criterion, xs.shape[-1])
+    a = _run("numba", lambda: covariance_intersection(xs, Ps, criterion))
+    b = _run("numpy", lambda: covariance_intersection(xs, Ps, criterion))
+    _assert_same(a, b)
+    assert a.info["solver"] == "diagonalise"
+    assert_bound_holds(a.P[0], a.gains[0], list(Ps[0]))
+
+
+@needs_numba
+@settings(max_examples=15)
+@given(st.integers(2, 4).flatmap(lambda count: st.integers(1, 4).flatmap(
+    lambda n: batches(count, n, 5))), st.sampled_from(["fast", "improved-fast", "det-ratio",
+                                                       "fixed", "optimal"]), criteria)
+def test_weights_rules_and_naive_fusion_agree_with_numpy(batch, rule, criterion):
+    xs, Ps = batch
+    criterion = _criterion(criterion, xs.shape[-1])
+    count = Ps.shape[-3]
+    omega = {"optimal": None, "fixed": np.full(count, 1.0 / count)}.get(rule, rule)
+
+    def ci():
+        return covariance_intersection(xs, Ps, criterion, omega)
+
+    _assert_same(_run("numba", ci), _run("numpy", ci))
+    try:
+        b = _run("numpy", lambda: naive_fusion(xs, Ps))
+    except IllConditionedError as error:  # beyond the contract: both raise alike
+        with pytest.raises(IllConditionedError) as raised:
+            _run("numba", lambda: naive_fusion(xs, Ps))
+        assert str(raised.value) == str(error)
+        return
+    a = _run("numba", lambda: naive_fusion(xs, Ps))
+    scale = np.abs(b.P).max(axis=(-2, -1))
+    np.testing.assert_array_less(np.abs(a.P - b.P).max(axis=(-2, -1)), 1e-9 * scale)
+
+
+@needs_numba
+@pytest.mark.parametrize("size", [AUTO_MIN_BATCH, THREADED_MIN + 3])
+def test_batches_go_to_the_kernels_under_auto_and_agree(size):
+    """Batches above the threshold of auto, on the serial and the threaded kernels."""
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((size, 2, 4, 4))
+    Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
+    xs = rng.standard_normal((size, 2, 4))
+    for criterion in ("trace", "det"):
+        a = covariance_intersection(xs, Ps, criterion)
+        b = _run("numpy", lambda criterion=criterion: covariance_intersection(xs, Ps, criterion))
+        _assert_same(a, b, rtol=1e-10)
+        np.testing.assert_array_equal(a.info["iterations"], b.info["iterations"])
+        assert a.info["converged"].all()
+    a = covariance_intersection(xs, Ps, omega="fast")
+    _assert_same(a, _run("numpy", lambda: covariance_intersection(xs, Ps, omega="fast")))
+
+
+@needs_numba
+def test_items_the_kernel_cannot_certify_are_solved_by_numpy():
+    """Condition 1e10 pairs (not trusted by the diagonalisation) amid ordinary ones: the
+    whole batch equals the numpy path, including the re-solved items."""
+    rng = np.random.default_rng(11)
+    Q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    bad = Q @ np.diag([1.0, 1e-5, 1e-10]) @ Q.T
+    bad = 0.5 * (bad + bad.T)
+    A = rng.standard_normal((8, 2, 3, 3))
+    Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(3)
+    Ps[[1, 5], 0] = bad
+    xs = rng.standard_normal((8, 2, 3))
+    for criterion in ("trace", "det"):
+        a = _run("numba", lambda criterion=criterion: covariance_intersection(xs, Ps, criterion))
+        b = _run("numpy", lambda criterion=criterion: covariance_intersection(xs, Ps, criterion))
+        _assert_same(a, b)
+        np.testing.assert_array_equal(a.info["iterations"], b.info["iterations"])
+        for k in (1, 5):
+            assert_bound_holds(a.P[k], a.gains[k], list(Ps[k]))
+
+
+@needs_numba
+def test_errors_are_those_of_the_numpy_path():
+    """Validation stays at the front door; a kernel that meets a numerically singular
+    fused information hands the item back, and the numpy path raises its own error."""
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((100, 2, 2, 2))
+    Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(2)
+    xs = np.zeros((100, 2, 2))
+    Ps_bad = Ps.copy()
+    Ps_bad[7] = np.diag([1.0, 1e-30])
+    calls = [
+        (IllConditionedError, lambda: covariance_intersection(xs, Ps_bad, omega=0.5)),
+        (IllConditionedError, lambda: naive_fusion(xs, Ps_bad)),
+        (ValueError, lambda: covariance_intersection(xs, Ps, omega=1.5)),
+        (ValueError, lambda: covariance_intersection(xs, Ps, criterion="volume")),
+        (ValueError, lambda: covariance_intersection(xs[:, :, :1], Ps)),
+    ]
+    for kind, call in calls:
+        messages = []
+        for backend in ("numpy", "numba"):
+            with cifilter.use_backend(backend), pytest.raises(kind) as raised:
+                call()
+            messages.append(str(raised.value))
+        assert messages[0] == messages[1]
+
+
+@needs_numba
+def test_inputs_are_not_modified():
+    rng = np.random.default_rng(2)
+    A = rng.standard_normal((100, 2, 3, 3))
+    Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(3)
+    xs = rng.standard_normal((100, 2, 3))
+    copies = xs.copy(), Ps.copy()
+    a = covariance_intersection(xs, Ps)
+    np.testing.assert_array_equal(xs, copies[0])
+    np.testing.assert_array_equal(Ps, copies[1])
+    assert a.P.dtype == np.float64 and a.info["converged"].all()
