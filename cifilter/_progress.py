@@ -70,6 +70,7 @@ class ProgressBar:
         self.start = time.perf_counter()
         self._last_draw = None
         self._drawn = False
+        self._drawn_done = None  # the count shown by the last drawing
 
     def update(self, amount=1):
         """Add ``amount`` finished units and redraw if it is time to."""
@@ -79,7 +80,8 @@ class ProgressBar:
     def close(self):
         """Draw the final state and end the line (only if the bar was shown)."""
         if self._drawn:
-            self._draw(force=True)
+            if self._drawn_done != self.done:
+                self._draw(force=True)
             self.stream.write("\n")
             self.stream.flush()
             self._drawn = False
@@ -113,4 +115,4 @@ class ProgressBar:
         self.stream.write(f"\r{label}[{bar}]  {text}\033[K" if _is_terminal(self.stream)
                           else f"\r{label}[{bar}]  {text}")
         self.stream.flush()
-        self._drawn = True
+        self._drawn, self._drawn_done = True, self.done
