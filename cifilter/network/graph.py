@@ -6,8 +6,10 @@ target's linear model (``F``, ``Q``, its initial state), each node's sensor (``H
 Ready scenarios: :func:`naveen_taylor` (the six-node network of Naveen & Taylor,
 Section V-B), :func:`ring`, :func:`chain` (the k nodes of Weng & Djurić's distributed
 Kalman filter model) and :func:`fully_connected`; :func:`two_tracks` is the two sensors of
-the two-track demo. :meth:`Scenario.from_filters` builds a scenario from the user's own
-``cifilter.KalmanFilter`` objects and graph.
+the two-track demo; :func:`common_information` is two such nodes tracking a target with no
+process noise, where the correlation between the nodes is common information (Noack et
+al.'s model, the one Inverse CI assumes). :meth:`Scenario.from_filters` builds a scenario
+from the user's own ``cifilter.KalmanFilter`` objects and graph.
 """
 
 from dataclasses import dataclass
@@ -22,6 +24,7 @@ __all__ = [
     "Scenario",
     "adjacency_matrix",
     "chain",
+    "common_information",
     "constant_velocity_model",
     "fully_connected",
     "get_scenario",
@@ -581,12 +584,78 @@ def two_tracks(*, dt=1.0, q=0.5, sigma_a=(10.0, 2.0), sigma_b=(3.0, 8.0)):
                   "the two-track demo's sensors A and B, linked", dt, q)
 
 
+def common_information(*, dt=1.0, q=0.0, sigma_a=(10.0, 2.0), sigma_b=(3.0, 8.0)):
+    """Two linked nodes whose correlation is common information: a target with no process
+    noise, tracked with feedback.
+
+    The two-track demo's sensors A and B, linked, tracking a target that moves at constant
+    velocity without process noise (``q = 0``). With feedback (the demo's default) both
+    nodes fuse each other's estimate with the same symmetric rule and so hold the same
+    fused estimate; each then predicts (exactly, ``Q = 0``) and updates with its own,
+    independent measurement. Their errors are therefore ``e_a = P_a (n_a + c)``,
+    ``e_b = P_b (n_b + c)``: an exclusive part ``n_a``, ``n_b`` (the new measurement's
+    information) and a common part ``c`` (the shared fused estimate's), so
+    ``P_ab = P_a C P_b`` with ``C = F^-T P_f^-1 S_f P_f^-1 F^-1`` (``P_f``, ``S_f``: the
+    fused estimate's reported and true covariances). For a conservative rule
+    (``S_f <= P_f``) this ``C`` is symmetric with ``0 <= C <= P_a^-1, P_b^-1``: the
+    common-information model of Noack et al. (2017) under which Inverse CI (``"ici"``)
+    is a bound, and the true joint covariance is dominated by the model's joint with the
+    reported ``P_a``, ``P_b``. Before the first exchange the priors are independent
+    (``C = 0``).
+
+    Two nodes, because each node then fuses exactly two estimates (ICI's bound is proved
+    for two). What makes the correlation common information is that the nodes start every
+    step from the same estimate and add only independent information to it; with feedback
+    that holds for any ``q`` (the process noise hits the shared estimate). Without
+    feedback each filter stays local: with ``q = 0`` the local estimates are independent
+    (``C = 0``); with ``q > 0`` the process noise they share makes ``P_a^-1 P_ab P_b^-1``
+    non-symmetric, a correlation outside the model (measured here: while the filters
+    converge; it approaches the model at their steady state). In the other scenarios,
+    where every node holds a different combination of estimates, the common process noise
+    is not common information.
+
+    Parameters
+    ----------
+    dt : float, optional
+        Time step [s] (default 1).
+    q : float, optional
+        White-noise acceleration density [m^2/s^3] (default 0: common information only).
+    sigma_a, sigma_b : tuple of float, optional
+        Standard deviations [m] of sensors A and B in x and y.
+
+    Returns
+    -------
+    Scenario
+        Two nodes, one link, ``Q = q``-scaled (zero by default).
+
+    References
+    ----------
+    B. Noack, J. Sijs, M. Reinhardt, U. D. Hanebeck, "Decentralized data fusion with
+    inverse covariance intersection", Automatica 79, 2017 (the common-information model).
+
+    Examples
+    --------
+    >>> from cifilter.network.graph import common_information
+    >>> s = common_information()
+    >>> s.nodes, float(abs(s.Q).max())
+    (2, 0.0)
+    """
+    q = check_scalar(q, "q", low=0)
+    R = (np.diag(np.square(sigma_a)), np.diag(np.square(sigma_b)))
+    description = ("common information: the two-track demo's sensors A and B, linked, "
+                   "tracking a target without process noise"
+                   + ("" if q == 0 else f" (here with process noise q = {q:g})"))
+    return _build("common-information", adjacency_matrix([(0, 1)]), R,
+                  np.array([[-1.0, 0.0], [1.0, 0.0]]), description, dt, q)
+
+
 _SCENARIOS = {
     "naveen-taylor": naveen_taylor,
     "ring": ring,
     "chain": chain,
     "fully-connected": fully_connected,
     "two-tracks": two_tracks,
+    "common-information": common_information,
 }
 
 
