@@ -60,9 +60,9 @@ def _demo(args):
         rows = run_demo(seed=args.seed, runs=args.runs, steps=args.steps,
                         methods=args.methods, plot=args.plot, scenario="two-tracks")
     else:
-        if args.nodes is not None and args.scenario == "naveen-taylor":
+        if args.nodes is not None and args.scenario in ("naveen-taylor", "common-information"):
             _usage_error("demo", "--nodes applies to ring, chain and fully-connected; "
-                         "naveen-taylor has six nodes")
+                         f"{args.scenario} has a fixed number of nodes")
         with montecarlo.dask_client(workers=args.workers, scheduler=args.scheduler) as client:
             rows = run_demo(seed=args.seed, runs=args.runs, steps=args.steps,
                             methods=args.methods, plot=args.plot, scenario=args.scenario,

@@ -4,7 +4,8 @@ estimates, feeding the result back into their filters.
 * :mod:`cifilter.network.graph`: :class:`Scenario` (target model, the nodes' sensors,
   the graph) and the ready scenarios :func:`naveen_taylor` (six nodes, Naveen & Taylor,
   Section V-B), :func:`ring`, :func:`chain` (Weng & Djurić's k nodes),
-  :func:`fully_connected` and :func:`two_tracks`;
+  :func:`fully_connected`, :func:`two_tracks` and :func:`common_information` (two nodes
+  whose correlation is genuinely common information, where Inverse CI's bound applies);
 * :mod:`cifilter.network.simulate`: :func:`simulate_data` and :func:`run_network`,
   vectorised over Monte Carlo runs and nodes, with feedback, exchange period, all-at-once
   or sequential fusion, packet loss and a one-step delay; :func:`centralised`, the
@@ -19,6 +20,7 @@ from .graph import (
     Scenario,
     adjacency_matrix,
     chain,
+    common_information,
     constant_velocity_model,
     fully_connected,
     get_scenario,
@@ -40,6 +42,7 @@ __all__ = [
     "adjacency_matrix",
     "centralised",
     "chain",
+    "common_information",
     "compare",
     "constant_velocity_model",
     "fully_connected",
