@@ -6,6 +6,7 @@ the problem and exits with status 2 (no traceback).
 """
 
 import argparse
+import math
 import os
 from pathlib import Path
 
@@ -32,6 +33,17 @@ def seed(text):
             f"expected a non-negative integer, got {text!r}") from None
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be non-negative, got {value}")
+    return value
+
+
+def positive_float(text):
+    """A finite float > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return value
 
 

@@ -6,44 +6,20 @@ the seed, its sizes and its chunk size only: not on ``--workers``/``--scheduler`
 which other sections run.
 """
 
-import argparse
 import functools
-import math
 
 import numpy as np
 
 from .. import montecarlo
 from .._cli_args import add_parallel_arguments, plot_directory
+from .._cli_args import seed as seed_argument
 
 __all__ = []
 
 
-def nonnegative_int(text):
-    """An integer >= 0 (``--seed``)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a non-negative integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
-    return value
-
-
-def positive_float(text):
-    """A finite float > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
-
-
 def add_common_arguments(parser, plot_help):
     """``--seed``, ``--plot DIR`` and ``--workers``/``--scheduler``."""
-    parser.add_argument("--seed", type=nonnegative_int, default=0,
+    parser.add_argument("--seed", type=seed_argument, default=0,
                         help="random seed, >= 0 (default 0)")
     parser.add_argument("--plot", metavar="DIR", type=plot_directory, help=plot_help)
     add_parallel_arguments(parser)

@@ -34,13 +34,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._cli_args import positive_int
+from .._cli_args import positive_float, positive_int
 from .._validation import as_rng, check_int, check_scalar
 from ..bayes import bayesian_fusion
 from ..ci import covariance_intersection
 from ..optimal import naive_fusion, optimal_fusion
 from ._checks import Claims, Estimate, mean_of
-from ._common import add_common_arguments, parallel_client, positive_float, run_study
+from ._common import add_common_arguments, parallel_client, run_study
 
 __all__ = [
     "FusionData",

@@ -9,11 +9,11 @@ import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
 from .._cli_args import positive_int
+from .._cli_args import seed as seed_argument
 from ..bounds import ci_trace_bound, worst_case_trace
 from ..ci import covariance_intersection
 from ..optimal import naive_fusion, optimal_fusion
 from ..pci import partial_ci
-from ._common import nonnegative_int
 
 DESCRIPTION = ("Wu, Cai & Fu 2018 (partial-correlation CI): Examples 1-3, Remark 3, "
                "optimality on random instances, iteration counts")
@@ -30,7 +30,7 @@ def add_arguments(parser):
                              "(default 200)")
     parser.add_argument("--optimality", type=positive_int, default=20,
                         help="random problems compared with SLSQP (default 20)")
-    parser.add_argument("--seed", type=nonnegative_int, default=0,
+    parser.add_argument("--seed", type=seed_argument, default=0,
                         help="random seed, >= 0 (default 0)")
 
 
