@@ -63,8 +63,10 @@ def covariance_union(xs, Ps, criterion="trace", mean=None):
         ``P``; for ``"det"`` also ``log_value``), ``rule`` (``"optimal"``,
         ``"candidates"`` or ``"fixed"``), ``optimal_covariance`` (True for two estimates:
         ``P`` is the smallest bound for ``x``) and, for the optimal mean of two estimates,
-        ``iterations``, ``converged`` and ``gap`` (trace: certified relative excess of the
-        criterion over its minimum over all means; NaN for det).
+        ``iterations`` (for the trace, with the Newton steps of the smoothed continuation
+        that finishes problems the iteration has not certified after 10), ``converged`` and
+        ``gap`` (trace: certified relative excess of the criterion over its minimum over
+        all means; NaN for det).
 
     Raises
     ------

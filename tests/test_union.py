@@ -15,7 +15,13 @@ from scipy.optimize import minimize
 from strategies import ill_conditioned_sets
 
 from cifilter import IllConditionedError, KalmanFilter, covariance_union, fuse, get_method
-from cifilter._union import pair_union
+from cifilter._union import (
+    SMOOTHING_AFTER,
+    SMOOTHING_STAGES,
+    _smoothed_dual_bound,
+    pair_union,
+    smoothed_trace_mean,
+)
 
 EPS = np.finfo(float).eps
 
@@ -283,3 +289,57 @@ def test_degenerate_problems_converge_without_error(criterion):
         worst_abs, _ = covered(r.x[k], r.P[k], xs[k], Ps[k])
         assert worst_abs >= -1e-14
     np.testing.assert_allclose(r.x[0], e1 / 2, atol=1e-9)  # symmetric: halfway
+
+
+def _rank_two_differences(count, seed):
+    """Pairs whose covariances differ by a rank-two matrix, as in a network that fuses with
+    covariance union and feeds the result back: the trace optimum then often sits on two
+    kinks at once, where the per-direction iteration converges only linearly."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(count, 4, 4))
+    P1 = A @ A.swapaxes(-1, -2) + np.eye(4)
+    v = rng.normal(size=(count, 4, 2))
+    P2 = (P1 + 3.0 * v[..., :, 0, None] * v[..., None, :, 0]
+          - 0.2 * v[..., :, 1, None] * v[..., None, :, 1])
+    keep = np.linalg.eigvalsh(P2)[:, 0] > 0.1
+    x1 = rng.normal(size=(count, 4))
+    x2 = x1 + 0.5 * rng.normal(size=(count, 4))
+    return np.stack([x1, x2], 1)[keep], np.stack([P1, P2], 1)[keep]
+
+
+def _union_trace(u, xs, Ps):
+    M = Ps + (u - xs)[:, :, None] * (u - xs)[:, None, :]
+    c = np.linalg.eigvalsh(M[1] - M[0])
+    return np.trace(M[0]) + c[c > 0].sum()
+
+
+def test_rank_two_differences_are_certified_by_the_smoothed_continuation():
+    xs, Ps = _rank_two_differences(120, seed=5)
+    r = covariance_union(xs, Ps)
+    iterations, gap = np.asarray(r.info["iterations"]), np.asarray(r.info["gap"])
+    assert (iterations > SMOOTHING_AFTER).sum() >= 20  # the continuation is exercised
+    assert np.all(r.info["converged"]) and np.all(gap <= 1e-9)
+    value = np.trace(r.P, axis1=-2, axis2=-1)
+    # the certificate is honest: nothing finds a smaller union than value (1 - gap)
+    for i in np.flatnonzero(iterations > SMOOTHING_AFTER)[:6]:
+        best = minimize(_union_trace, r.x[i], args=(xs[i], Ps[i]), method="Nelder-Mead",
+                        options=dict(xatol=1e-12, fatol=1e-14, maxiter=20000)).fun
+        assert best >= value[i] * (1 - gap[i]) - 1e-12 * value[i]
+
+
+def test_smoothed_dual_bound_is_a_lower_bound_and_tight_at_the_smoothed_optimum():
+    xs, Ps = _rank_two_differences(40, seed=7)
+    minimum = np.trace(covariance_union(xs, Ps).P, axis1=-2, axis2=-1)
+    rng = np.random.default_rng(0)
+    for mu in (1.0, 1e-3, 1e-8):  # any mean and any smoothing give a valid bound
+        e = rng.normal(size=xs[:, 0].shape)
+        lower = _smoothed_dual_bound(Ps, xs, e, np.full(len(e), mu))
+        assert np.all(lower <= minimum * (1 + 1e-12))
+    # at the end of the continuation the bound is within 0.28 n mu of the value
+    u, lower, steps = smoothed_trace_mean(Ps, xs, xs.mean(axis=1), minimum, tol=0.0)
+    M = Ps + (u[:, None, :] - xs)[..., :, None] * (u[:, None, :] - xs)[..., None, :]
+    c = np.linalg.eigvalsh(M[:, 1] - M[:, 0])
+    value = np.trace(M[:, 0], axis1=-2, axis2=-1) + np.maximum(c, 0).sum(-1)
+    assert np.all(steps == 6 * SMOOTHING_STAGES.size)
+    assert np.all(value - lower <= 0.28 * 4 * SMOOTHING_STAGES[-1] * minimum + 1e-12 * value)
+    assert np.all(lower <= minimum * (1 + 1e-12))
