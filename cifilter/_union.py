@@ -79,6 +79,13 @@ def _outer_updated(P, x, u):
     return symmetrize(P + d[..., :, None] * d[..., None, :])
 
 
+def _difference(P, d1, d2):
+    """``C = M_2 - M_1 = P_2 - P_1 + d_2 d_2^T - d_1 d_1^T`` for the offsets ``d_i = u - x_i``
+    (rows of a batch): the matrix whose positive part the trace union adds to ``M_1``."""
+    return symmetrize(P[:, 1] - P[:, 0] + d2[:, :, None] * d2[:, None, :]
+                      - d1[:, :, None] * d1[:, None, :])
+
+
 def pair_union(A, B, xa, xb, kind):
     """The smallest upper bound of ``A`` and ``B`` (..., n, n) in ``kind`` (a :class:`PairUnion`).
 
@@ -205,9 +212,7 @@ def _step_candidates(P, x, u, step):
     (``W = [step, dx]``, ``J = -[[0, 1], [1, 0]]``). Optima sit on kinks; trying them
     lands on the kink exactly instead of approaching it by halving.
     """
-    d1, d2 = u - x[:, 0], u - x[:, 1]
-    C0 = symmetrize(P[:, 1] - P[:, 0] + d2[:, :, None] * d2[:, None, :]
-                    - d1[:, :, None] * d1[:, None, :])
+    C0 = _difference(P, u - x[:, 0], u - x[:, 1])
     W = np.stack([step, x[:, 1] - x[:, 0]], axis=-1)
     kinks = np.full((u.shape[0], 2), 1.0)
     try:
@@ -234,10 +239,7 @@ def trace_newton_steps(P, x, u):
     in [-1/2, 1/2]); both are candidates, accepted only if they decrease ``g``.
     """
     n = u.shape[-1]
-    d1, d2 = u - x[:, 0], u - x[:, 1]
-    C = symmetrize(P[:, 1] - P[:, 0] + d2[:, :, None] * d2[:, None, :]
-                   - d1[:, :, None] * d1[:, None, :])
-    c, V = np.linalg.eigh(C)
+    c, V = np.linalg.eigh(_difference(P, u - x[:, 0], u - x[:, 1]))
     beta = np.einsum("rij,ri->rj", V, x[:, 1] - x[:, 0])
     sign = np.sign(c)
     half = 0.5 * sign
@@ -351,23 +353,27 @@ def _solve(M, b):
 
 
 def _difference_eigen(P, x, e):
-    """Eigen-decomposition of ``C(e) = M_2 - M_1`` at ``u = x_1 + e`` (rows of a batch):
-    ``C(e) = P_2 - P_1 + d d^T - e d^T - d e^T`` with ``d = x_2 - x_1``."""
+    """Eigen-decomposition of ``C = M_2 - M_1`` at ``u = x_1 + e`` (rows of a batch), and
+    ``d = x_2 - x_1``."""
     d = x[:, 1] - x[:, 0]
-    C = symmetrize(P[:, 1] - P[:, 0] + d[:, :, None] * d[:, None, :]
-                   - e[:, :, None] * d[:, None, :] - d[:, :, None] * e[:, None, :])
-    c, V = np.linalg.eigh(C)
+    c, V = np.linalg.eigh(_difference(P, e, e - d))
     return c, V, d
 
 
 def _smoothed_value(P, x, e, mu):
     """``|e|^2 + sum_k mu log(1 + exp(c_k / mu))``: ``trace(U) - trace(P_1)`` smoothed."""
     c, _, _ = _difference_eigen(P, x, e)
+    return _smoothed_from_eigen(e, c, mu)
+
+
+def _smoothed_from_eigen(e, c, mu):
+    """:func:`_smoothed_value` from the eigenvalues ``c`` of ``C`` at ``e``."""
     return (e * e).sum(-1) + (mu[:, None] * np.logaddexp(0.0, c / mu[:, None])).sum(-1)
 
 
 def _smoothed_newton_step(P, x, e, mu):
-    """The Newton step of :func:`_smoothed_value` in ``e`` (rows of a batch).
+    """The Newton step of :func:`_smoothed_value` in ``e``, and that value at ``e`` (rows of a
+    batch; one eigen-decomposition serves both).
 
     With ``C = V diag(c) V^T``, ``s = sigmoid(c / mu)`` and ``beta = V^T d`` the gradient is
     ``2 e - 2 V (s beta)`` and the Hessian ``2 I + 2 V (diag(Gamma beta^2) + diag(beta)
@@ -388,7 +394,7 @@ def _smoothed_newton_step(P, x, e, mu):
     grad = 2.0 * np.einsum("rij,ri->rj", V, e) - 2.0 * s * beta
     H = 2.0 * (np.eye(n) + np.einsum("rjk,rk->rj", Gamma, beta**2)[:, :, None] * np.eye(n)
                + beta[:, :, None] * Gamma * beta[:, None, :])
-    return np.einsum("rij,rj->ri", V, -_solve(H, grad))
+    return np.einsum("rij,rj->ri", V, -_solve(H, grad)), _smoothed_from_eigen(e, c, mu)
 
 
 def _smoothed_dual_bound(P, x, e, mu):
@@ -397,7 +403,11 @@ def _smoothed_dual_bound(P, x, e, mu):
     ``0 < Z < I``, so it is a certified lower bound of the smallest ``trace(U)``; at the
     minimiser of the smoothed criterion it is within ``0.28 n mu`` of the minimum.
     """
-    c, V, d = _difference_eigen(P, x, e)
+    return _dual_from_eigen(P, *_difference_eigen(P, x, e), mu)
+
+
+def _dual_from_eigen(P, c, V, d, mu):
+    """:func:`_smoothed_dual_bound` from the eigen-decomposition of ``C`` and ``d``."""
     Z = (V * expit(c / mu[:, None])[:, None, :]) @ V.swapaxes(-1, -2)
     Zd = np.einsum("rij,rj->ri", Z, d)
     return (np.trace(P[:, 0], axis1=-2, axis2=-1) + np.einsum("rij,rji->r", Z, P[:, 1] - P[:, 0])
@@ -425,9 +435,8 @@ def smoothed_trace_mean(P, x, u, value, tol=GAP_TOL, newton_steps=6):
         mu = relative * np.abs(value[active])
         ea = e[active]
         for _ in range(newton_steps):
-            step = _smoothed_newton_step(Pa, xa, ea, mu)
+            step, base = _smoothed_newton_step(Pa, xa, ea, mu)
             step = np.where(np.isfinite(step), step, 0.0)
-            base = _smoothed_value(Pa, xa, ea, mu)
             t = np.ones(len(ea))
             moved = np.zeros(len(ea), dtype=bool)
             for _ in range(30):  # backtracking on the smoothed criterion
@@ -440,9 +449,10 @@ def smoothed_trace_mean(P, x, u, value, tol=GAP_TOL, newton_steps=6):
                 t = np.where(moved, t, 0.5 * t)
         steps[active] += newton_steps
         e[active] = ea
-        lower[active] = np.maximum(lower[active], _smoothed_dual_bound(Pa, xa, ea, mu))
-        value_now = np.trace(Pa[:, 0], axis1=-2, axis2=-1) + (ea * ea).sum(-1) + np.maximum(
-            _difference_eigen(Pa, xa, ea)[0], 0.0).sum(-1)
+        c, V, d = _difference_eigen(Pa, xa, ea)  # the stage's certificate, one decomposition
+        lower[active] = np.maximum(lower[active], _dual_from_eigen(Pa, c, V, d, mu))
+        value_now = (np.trace(Pa[:, 0], axis1=-2, axis2=-1) + (ea * ea).sum(-1)
+                     + np.maximum(c, 0.0).sum(-1))
         certified = value_now - lower[active] <= tol * value_now
         active = active[~certified]
     return x[:, 0] + e, lower, steps
