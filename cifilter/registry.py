@@ -76,7 +76,8 @@ class FusionMethod:
         What ``FusionResult.weights`` holds for this rule (for the documentation).
     signature : tuple or None
         The option names the rule accepts, those it requires and whether it takes any
-        keyword (computed from ``core`` or ``function`` when None, once).
+        keyword (computed from ``core`` or ``function`` when None, once; likewise the
+        attribute ``truth_takes_count``, whether ``truth_options`` takes ``count``).
 
     Examples
     --------
@@ -98,12 +99,18 @@ class FusionMethod:
     horizon: Optional[Callable] = None
     weights: str = ""
     signature: Optional[tuple] = field(default=None, repr=False, compare=False)
+    truth_takes_count: bool = field(default=False, init=False, repr=False, compare=False)
 
     def __post_init__(self):
-        if self.signature is None:  # computed once: inspect.signature is slow per call
+        # computed once: inspect.signature is slow per call (the network simulation asks
+        # for truth options at every fusion)
+        if self.signature is None:
             signature = (_option_signature(self.core, 1) if self.core is not None
                          else _option_signature(self.function, 2))
             object.__setattr__(self, "signature", signature)
+        takes_count = (self.truth_options is not None
+                       and "count" in inspect.signature(self.truth_options).parameters)
+        object.__setattr__(self, "truth_takes_count", takes_count)
 
     def options_given_truth(self, joint, rng, count=2):
         """Options for this rule in a simulation where the joint covariance is known.
@@ -131,7 +138,7 @@ class FusionMethod:
         """
         if self.truth_options is None:
             return {}
-        if "count" in inspect.signature(self.truth_options).parameters:
+        if self.truth_takes_count:
             return dict(self.truth_options(joint, rng, count=count))
         return dict(self.truth_options(joint, rng))
 
