@@ -44,13 +44,19 @@ TIE_TOL = 1e-9
 # linearly from both sides, and a residual r leaves an excess of the criterion of order r^2.
 GAP_TOL = 1e-9
 RESIDUAL_TOL = 1e-6
-# Trace problems the per-direction iteration has not certified after this many iterations
+# Trace problems the per-direction iteration has not certified after SMOOTHING_AFTER
+# iterations, or whose certified gap shrank less than 1/SLOW_PROGRESS-fold in one iteration,
 # continue on the smoothed criterion (:func:`smoothed_trace_mean`): where the optimum sits
-# on several kinks at once the iteration converges only linearly.
+# on several kinks at once, or eigenvalues of M_2 - M_1 nearly meet there, the iteration
+# converges only linearly.
 SMOOTHING_AFTER = 10
+SLOW_PROGRESS = 0.1
 # The smoothing parameters of the continuation, relative to the criterion's value: the last
 # one leaves a duality gap of at most 0.28 n times it.
 SMOOTHING_STAGES = np.geomspace(1e-3, 1e-12, 10)
+# A row leaves a stage of the continuation when the part of its duality gap that is not the
+# smoothing's own (|e - Z d|^2, :class:`SmoothedPoint`) is below RESIDUAL mu.
+RESIDUAL = 1e-3
 
 
 class PairUnion(NamedTuple):
@@ -84,6 +90,16 @@ def _difference(P, d1, d2):
     (rows of a batch): the matrix whose positive part the trace union adds to ``M_1``."""
     return symmetrize(P[:, 1] - P[:, 0] + d2[:, :, None] * d2[:, None, :]
                       - d1[:, :, None] * d1[:, None, :])
+
+
+def trace_value(P, x, u):
+    """``trace`` of the union of two estimates at the means ``u`` (rows of a batch), from the
+    eigenvalues alone: ``trace(M_1) + sum_k max(c_k, 0)``, ``c`` the eigenvalues of
+    ``M_2 - M_1`` (the trace of ``M_1 + (M_2 - M_1)_+``)."""
+    d1, d2 = u - x[:, 0], u - x[:, 1]
+    c = np.linalg.eigvalsh(_difference(P, d1, d2))
+    return (np.trace(P[:, 0], axis1=-2, axis2=-1) + (d1 * d1).sum(-1)
+            + np.maximum(c, 0.0).sum(-1))
 
 
 def pair_union(A, B, xa, xb, kind):
@@ -352,109 +368,188 @@ def _solve(M, b):
             return np.einsum("...ij,...j->...i", np.linalg.pinv(M), b)
 
 
-def _difference_eigen(P, x, e):
-    """Eigen-decomposition of ``C = M_2 - M_1`` at ``u = x_1 + e`` (rows of a batch), and
-    ``d = x_2 - x_1``."""
-    d = x[:, 1] - x[:, 0]
-    c, V = np.linalg.eigh(_difference(P, e, e - d))
-    return c, V, d
-
-
-def _smoothed_value(P, x, e, mu):
-    """``|e|^2 + sum_k mu log(1 + exp(c_k / mu))``: ``trace(U) - trace(P_1)`` smoothed."""
-    c, _, _ = _difference_eigen(P, x, e)
-    return _smoothed_from_eigen(e, c, mu)
-
-
 def _smoothed_from_eigen(e, c, mu):
-    """:func:`_smoothed_value` from the eigenvalues ``c`` of ``C`` at ``e``."""
+    """``|e|^2 + sum_k mu log(1 + exp(c_k / mu))``: ``trace(U) - trace(P_1)`` smoothed, from
+    the eigenvalues ``c`` of ``C = M_2 - M_1`` at ``u = x_1 + e`` (rows of a batch)."""
     return (e * e).sum(-1) + (mu[:, None] * np.logaddexp(0.0, c / mu[:, None])).sum(-1)
 
 
-def _smoothed_newton_step(P, x, e, mu):
-    """The Newton step of :func:`_smoothed_value` in ``e``, and that value at ``e`` (rows of a
-    batch; one eigen-decomposition serves both).
+class SmoothedPoint(NamedTuple):
+    """What one eigen-decomposition of ``C`` at ``e`` gives the smoothed continuation."""
 
-    With ``C = V diag(c) V^T``, ``s = sigmoid(c / mu)`` and ``beta = V^T d`` the gradient is
-    ``2 e - 2 V (s beta)`` and the Hessian ``2 I + 2 V (diag(Gamma beta^2) + diag(beta)
-    Gamma diag(beta)) V^T`` with the divided differences ``Gamma_jk = (s_j - s_k) / (c_j -
-    c_k)`` of the sigmoid (Daleckii-Krein; ``docs/methods/union.rst``).
+    lower: np.ndarray  # certified lower bound of the smallest trace(U) (dual, Z = sigmoid)
+    value: np.ndarray  # trace(U) at e
+    smoothed: np.ndarray  # the smoothed criterion (without trace(P_1))
+    step: np.ndarray  # its Newton step
+    residual: np.ndarray  # |e - Z d|^2 = |g|^2 / 4: the duality gap beyond the smoothing's
+    tangent: np.ndarray  # d e / d mu along the path of smoothed minimisers (predictor)
+
+
+def smoothed_point(trace_1, e, c, V, d, mu):
+    """The bound, the values and the Newton step of the smoothed trace criterion at ``e``
+    from ``C = V diag(c) V^T`` (rows of a batch; ``trace_1 = trace(P_1)``, ``d = x_2 - x_1``).
+
+    In the eigenbasis, with ``s = sigmoid(c / mu)``, ``beta = V^T d`` and ``gamma = V^T e``:
+
+    * dual bound at ``Z = V diag(s) V^T`` (feasible, ``0 < Z < I``; :func:`trace_dual_bound`):
+      ``q = tr P_1 + sum_k s_k (c_k + 2 gamma_k beta_k - s_k beta_k^2)``, because
+      ``V^T (P_2 - P_1) V`` has the diagonal ``c_k - beta_k^2 + 2 gamma_k beta_k``
+      (``C = P_2 - P_1 + d d^T - e d^T - d e^T``). The gap to the value is
+      ``sum_k (max(c_k, 0) - s_k c_k) + |gamma - s beta|^2``: the smoothing's part, at most
+      ``0.28 mu`` per eigenvalue, and the ``residual`` ``|e - Z d|^2 = |g|^2 / 4``, which
+      vanishes at the smoothed minimiser;
+    * gradient ``g = 2 gamma - 2 s beta`` and Hessian ``H = 2 I + 2 (diag(Gamma beta^2) +
+      diag(beta) Gamma diag(beta))`` with the divided differences ``Gamma_jk = (s_j - s_k) /
+      (c_j - c_k)`` of the sigmoid (Daleckii-Krein; ``docs/methods/union.rst``);
+    * the tangent of the path of smoothed minimisers, ``de/dmu = -H^-1 dg/dmu`` with
+      ``dg/dmu = 2 beta s (1 - s) c / mu^2`` (exact at a smoothed minimiser; the predictor
+      of the next stage).
     """
-    c, V, d = _difference_eigen(P, x, e)
     n = c.shape[-1]
     m = mu[:, None]
     s = expit(c / m)
+    beta = np.einsum("rij,ri->rj", V, d)
+    gamma = np.einsum("rij,ri->rj", V, e)
+    lower = trace_1 + (s * (c + 2.0 * gamma * beta - s * beta**2)).sum(-1)
+    squared = (e * e).sum(-1)
+    value = trace_1 + squared + np.maximum(c, 0.0).sum(-1)
+    smoothed = squared + (m * np.logaddexp(0.0, c / m)).sum(-1)
     slope = s * (1.0 - s) / m
     gaps = c[:, :, None] - c[:, None, :]
     near = np.abs(gaps) <= 1e-12 * (np.abs(c).max(axis=-1) + mu)[:, None, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         Gamma = np.where(near, 0.5 * (slope[:, :, None] + slope[:, None, :]),
                          (s[:, :, None] - s[:, None, :]) / gaps)
-    beta = np.einsum("rij,ri->rj", V, d)
-    grad = 2.0 * np.einsum("rij,ri->rj", V, e) - 2.0 * s * beta
+    grad = 2.0 * gamma - 2.0 * s * beta
     H = 2.0 * (np.eye(n) + np.einsum("rjk,rk->rj", Gamma, beta**2)[:, :, None] * np.eye(n)
                + beta[:, :, None] * Gamma * beta[:, None, :])
-    return np.einsum("rij,rj->ri", V, -_solve(H, grad)), _smoothed_from_eigen(e, c, mu)
+    with np.errstate(over="ignore", invalid="ignore"):
+        grad_mu = 2.0 * beta * slope * c / m
+    solved = -_solve(H[:, None], np.stack([grad, grad_mu], axis=1))  # in the eigenbasis of C
+    step, tangent = np.einsum("rij,rsj->sri", V, solved)
+    residual = ((gamma - s * beta) ** 2).sum(-1)
+    return SmoothedPoint(lower, value, smoothed, step, residual, tangent)
 
 
-def _smoothed_dual_bound(P, x, e, mu):
-    """The dual bound ``q(Z)`` of :func:`trace_dual_bound` at ``Z = V diag(sigmoid(c/mu)) V^T``.
+def smoothed_dual_bound(P, x, e, mu):
+    """The certified lower bound of :func:`smoothed_point` at ``u = x_1 + e`` (rows)."""
+    d = x[:, 1] - x[:, 0]
+    c, V = np.linalg.eigh(_difference(P, e, e - d))
+    return smoothed_point(np.trace(P[:, 0], axis1=-2, axis2=-1), e, c, V, d, mu).lower
 
-    ``0 < Z < I``, so it is a certified lower bound of the smallest ``trace(U)``; at the
-    minimiser of the smoothed criterion it is within ``0.28 n mu`` of the minimum.
+
+def _first_decrease(value_at, rows, start, step, base, tiers, strict=True):
+    """Per row, the first ``t`` of ``tiers`` (a sequence of arrays, in order) at which
+    ``value_at(rows, start + t step)`` is below ``base`` (or equal, unless ``strict``); 0
+    where none is.
+
+    Each tier is one batched evaluation of the rows still searching, so a backtracking
+    line search costs a few calls instead of one per halving; the result is that of trying
+    the step lengths one at a time.
     """
-    return _dual_from_eigen(P, *_difference_eigen(P, x, e), mu)
+    t = np.zeros(len(start))
+    pending = np.arange(len(start))
+    for tier in tiers:
+        if pending.size == 0:
+            break
+        k = tier.size
+        trial = start[pending, None, :] + tier[None, :, None] * step[pending, None, :]
+        value = value_at(np.repeat(rows[pending], k), trial.reshape(-1, start.shape[-1]))
+        value = np.where(np.isfinite(value), value, np.inf).reshape(-1, k)
+        good = value < base[pending, None] if strict else value <= base[pending, None]
+        found = good.any(axis=-1)
+        t[pending[found]] = tier[np.argmax(good[found], axis=-1)]
+        pending = pending[~found]
+    return t
 
 
-def _dual_from_eigen(P, c, V, d, mu):
-    """:func:`_smoothed_dual_bound` from the eigen-decomposition of ``C`` and ``d``."""
-    Z = (V * expit(c / mu[:, None])[:, None, :]) @ V.swapaxes(-1, -2)
-    Zd = np.einsum("rij,rj->ri", Z, d)
-    return (np.trace(P[:, 0], axis1=-2, axis2=-1) + np.einsum("rij,rji->r", Z, P[:, 1] - P[:, 0])
-            + np.einsum("ri,ri->r", d, Zd) - (Zd * Zd).sum(-1))
+# Step lengths of the backtracking line searches after a failed full step, in the tiers in
+# which they are tried: seven halvings, then the rest (a stalled row needs all of them).
+HALVINGS = (0.5 ** np.arange(1, 8), 0.5 ** np.arange(8, 41))
 
 
-def smoothed_trace_mean(P, x, u, value, tol=GAP_TOL, newton_steps=6):
+def smoothed_trace_mean(P, x, u, value, tol=GAP_TOL, newton_steps=10):
     """Continue the trace problem of two estimates on a smoothed criterion (rows of a batch).
 
     ``trace((M_2 - M_1)_+)`` is replaced by ``sum_k mu log(1 + exp(c_k / mu))`` (smooth and
     convex), minimised by damped Newton steps while ``mu`` decreases through
-    :data:`SMOOTHING_STAGES` times ``value``; after each stage the sigmoid of the eigenvalues
-    gives a feasible dual point and so a certified lower bound. Converges fast where the
-    optimum sits on several kinks at once. Rows certified to ``tol`` stop early. Returns
-    ``(u, lower, steps)``: the means, the best lower bounds and the Newton steps per row.
+    :data:`SMOOTHING_STAGES` times ``value``. At every Newton step the sigmoid of the
+    eigenvalues gives a feasible dual point and so a certified lower bound; a row stops when
+    it is certified to ``tol``, and leaves a stage when the gap beyond the smoothing's own,
+    ``|e - Z d|^2``, is below :data:`RESIDUAL` ``mu`` (the stage's gap is then within
+    ``(0.28 n + RESIDUAL) mu``), after ``newton_steps`` steps, or when no step decreases the
+    smoothed criterion. From the second stage on, each row first follows the tangent of the
+    path of smoothed minimisers to the new ``mu`` (a predictor, kept where it decreases the
+    new criterion), so that a stage typically needs one or two Newton steps. Converges fast
+    where the optimum sits on several kinks at once. One eigen-decomposition per step serves
+    the certificate, the Newton step and the test of the full step (:func:`smoothed_point`).
+    Returns ``(u, lower, steps)``: the means, the best lower bounds and the Newton steps per
+    row.
     """
     e = u - x[:, 0]
+    d = x[:, 1] - x[:, 0]
+    trace_1 = np.trace(P[:, 0], axis1=-2, axis2=-1)
+    # C(e) = M_2 - M_1 = C_0 - (e d^T + d e^T) is affine in e (the quadratic terms cancel)
+    C_0 = symmetrize(P[:, 1] - P[:, 0] + d[:, :, None] * d[:, None, :])
+
+    def difference(rows, e_rows):
+        return C_0[rows] - (e_rows[:, :, None] * d[rows, None, :]
+                            + d[rows, :, None] * e_rows[:, None, :])
+
     lower = np.full(len(e), -np.inf)
     steps = np.zeros(len(e), dtype=int)
-    active = np.arange(len(e))
+    active = np.ones(len(e), dtype=bool)  # rows not yet certified
+    c, V = np.linalg.eigh(difference(np.arange(len(e)), e))  # at every row's current mean
+    tangent = np.zeros_like(e)  # de/dmu at each row's last point, and the mu it was taken at
+    mu_last = np.zeros(len(e))
     for relative in SMOOTHING_STAGES:
-        if active.size == 0:
+        mu_all = relative * np.abs(value)
+        stage = np.flatnonzero(active)  # rows still taking Newton steps on this stage
+        if stage.size and relative < SMOOTHING_STAGES[0]:
+            # predictor: follow the tangent to the new mu; kept where it decreases the new
+            # smoothed criterion (the Newton steps below correct it)
+            mu = mu_all[stage]
+            trial = e[stage] + (mu - mu_last[stage])[:, None] * tangent[stage]
+            c_trial, V_trial = np.linalg.eigh(difference(stage, trial))
+            better = (np.isfinite(trial).all(-1) & (_smoothed_from_eigen(trial, c_trial, mu)
+                      <= _smoothed_from_eigen(e[stage], c[stage], mu)))
+            take = stage[better]
+            e[take], c[take], V[take] = trial[better], c_trial[better], V_trial[better]
+        for newton in range(newton_steps + 1):  # the last pass only certifies
+            if stage.size == 0:
+                break
+            mu = mu_all[stage]
+            now = smoothed_point(trace_1[stage], e[stage], c[stage], V[stage], d[stage], mu)
+            tangent[stage], mu_last[stage] = now.tangent, mu
+            lower[stage] = np.maximum(lower[stage], now.lower)
+            certified = now.value - lower[stage] <= tol * now.value
+            active[stage[certified]] = False
+            keep = (~certified & (now.residual > RESIDUAL * mu)
+                    & np.isfinite(now.step).all(-1) & (newton < newton_steps))
+            stage, step, base = stage[keep], now.step[keep], now.smoothed[keep]
+            if stage.size == 0:
+                break
+            trial = e[stage] + step
+            c_trial, V_trial = np.linalg.eigh(difference(stage, trial))
+            moved = _smoothed_from_eigen(trial, c_trial, mu_all[stage]) <= base
+            take = stage[moved]
+            e[take], c[take], V[take] = trial[moved], c_trial[moved], V_trial[moved]
+            rest = np.flatnonzero(~moved)  # the full step increases the criterion: backtrack
+            if rest.size:
+                t = _first_decrease(
+                    lambda r, e_r, mu_all=mu_all: _smoothed_from_eigen(
+                        e_r, np.linalg.eigvalsh(difference(r, e_r)), mu_all[r]),
+                    stage[rest], e[stage[rest]], step[rest], base[rest], HALVINGS,
+                    strict=False)
+                shorter = rest[t > 0]
+                rows = stage[shorter]
+                e[rows] += t[t > 0, None] * step[shorter]
+                c[rows], V[rows] = np.linalg.eigh(difference(rows, e[rows]))
+                moved[shorter] = True
+            steps[stage] += 1
+            stage = stage[moved]  # a row whose step decreases nothing has stalled here
+        if not active.any():
             break
-        Pa, xa = P[active], x[active]
-        mu = relative * np.abs(value[active])
-        ea = e[active]
-        for _ in range(newton_steps):
-            step, base = _smoothed_newton_step(Pa, xa, ea, mu)
-            step = np.where(np.isfinite(step), step, 0.0)
-            t = np.ones(len(ea))
-            moved = np.zeros(len(ea), dtype=bool)
-            for _ in range(30):  # backtracking on the smoothed criterion
-                trial = _smoothed_value(Pa, xa, ea + t[:, None] * step, mu)
-                good = ~moved & (trial <= base)
-                ea[good] += t[good, None] * step[good]
-                moved |= good
-                if moved.all():
-                    break
-                t = np.where(moved, t, 0.5 * t)
-        steps[active] += newton_steps
-        e[active] = ea
-        c, V, d = _difference_eigen(Pa, xa, ea)  # the stage's certificate, one decomposition
-        lower[active] = np.maximum(lower[active], _dual_from_eigen(Pa, c, V, d, mu))
-        value_now = (np.trace(Pa[:, 0], axis1=-2, axis2=-1) + (ea * ea).sum(-1)
-                     + np.maximum(c, 0.0).sum(-1))
-        certified = value_now - lower[active] <= tol * value_now
-        active = active[~certified]
     return x[:, 0] + e, lower, steps
 
 
@@ -466,10 +561,13 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
     (:func:`_mean_rule`) and the best step ``t`` among the candidates, and the Newton steps
     of :func:`trace_newton_steps` or :func:`det_newton_steps` where they decrease more.
     Returns
-    ``(u, pair, value, iterations, converged, gap)``; ``gap`` is the certified relative
-    gap of the trace criterion (NaN for ``"det"``, whose joint problem is not convex; there
-    ``converged`` means stationary: residual of the mean rule at most ``residual_tol``
-    standard deviations of ``U``). Candidate steps: halvings and the kinks of the line
+    ``(u, pair, value, iterations, converged, gap, smoothed)``; ``gap`` is the certified
+    relative gap of the trace criterion (NaN for ``"det"``, whose joint problem is not
+    convex; there ``converged`` means stationary: residual of the mean rule at most
+    ``residual_tol`` standard deviations of ``U``); ``smoothed`` marks the trace problems
+    finished by :func:`smoothed_trace_mean` (those not certified after
+    :data:`SMOOTHING_AFTER` iterations, or whose gap shrank less than
+    ``1 / SLOW_PROGRESS``-fold in one). Candidate steps: halvings and the kinks of the line
     (:func:`_step_candidates`); a problem stops when no candidate decreases the criterion.
     """
     batch = x.shape[:-2]
@@ -487,8 +585,12 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
         pair = pair_union(M[:, 0], M[:, 1], flat_x[rows, 0], flat_x[rows, 1], kind)
         return pair, criterion_of(pair.U, kind)
 
+    def value_at(rows, u_rows):  # the criterion alone, for comparing trial means
+        if kind == "trace":
+            return trace_value(flat_P[rows], flat_x[rows], u_rows)
+        return evaluate(u_rows, rows)[1]
+
     everything = np.arange(size)
-    pair, value = evaluate(u, everything)
     # trace problems the iteration has not certified by SMOOTHING_AFTER continue on the
     # smoothed criterion below (the iteration is linear where several kinks meet)
     for _ in range(max_iter if kind == "det" else min(max_iter, SMOOTHING_AFTER)):
@@ -500,23 +602,30 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
         if kind == "trace":
             lower = trace_dual_bound(pair, flat_P[rows, 0], flat_P[rows, 1])
             g = np.maximum(value_rows - lower, 0.0) / value_rows
-            gap[rows] = g
             ok = g <= tol
+            # a gap that shrank less than 1/SLOW_PROGRESS-fold in this iteration: the
+            # iteration is linear here (several kinks, or nearly equal eigenvalues, at the
+            # optimum); such rows continue on the smoothed criterion below
+            slow = ~ok & (g > SLOW_PROGRESS * gap[rows])
+            gap[rows] = g
+            done[rows[slow]] = True
+            ok_or_slow = ok | slow
         else:
-            ok = residual <= residual_tol
+            ok = ok_or_slow = residual <= residual_tol
         converged[rows[ok]] = True
         done[rows[ok]] = True
-        moving = rows[~ok]
+        moving = rows[~ok_or_slow]
         if moving.size == 0:
             break
-        step = (u_target - u[rows])[~ok]
-        base, current = value_rows[~ok], u[moving]
+        step = (u_target - u[rows])[~ok_or_slow]
+        current = u[moving]
+        # trial means are compared by value_at, the current one too (the same rounding)
+        base = value_at(moving, current) if kind == "trace" else value_rows[~ok_or_slow]
         # the full step and the kinks of the line first; halvings only where they fail
         ts = _step_candidates(flat_P[moving], flat_x[moving], current, step)
         K = ts.shape[-1]
         candidate = current[:, None, :] + ts[..., None] * step[:, None, :]
-        _, trial_value = evaluate(candidate.reshape(-1, candidate.shape[-1]),
-                                  np.repeat(moving, K))
+        trial_value = value_at(np.repeat(moving, K), candidate.reshape(-1, candidate.shape[-1]))
         trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf).reshape(-1, K)
         pick = np.argmin(trial_value, axis=-1)
         best_value = np.take_along_axis(trial_value, pick[:, None], axis=-1)[:, 0]
@@ -528,8 +637,7 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
         newton, kink = steps(flat_P[moving], flat_x[moving], current)
         candidate = np.stack([current + newton, current + kink], axis=1)
         candidate = np.where(np.isfinite(candidate), candidate, current[:, None, :])
-        _, trial_value = evaluate(candidate.reshape(-1, candidate.shape[-1]),
-                                  np.repeat(moving, 2))
+        trial_value = value_at(np.repeat(moving, 2), candidate.reshape(-1, candidate.shape[-1]))
         trial_value = np.where(np.isfinite(trial_value), trial_value, np.inf)
         trial_value = trial_value.reshape(-1, 2)
         pick = np.argmin(trial_value, axis=-1)
@@ -538,21 +646,17 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
         chosen = np.take_along_axis(candidate, pick[:, None, None], axis=1)[:, 0]
         u[moving[better]] = chosen[better]
         accepted |= better
-        t = 0.5
-        for _ in range(40):
-            trial = np.flatnonzero(~accepted)
-            if trial.size == 0:
-                break
-            candidate = current[trial] + t * step[trial]
-            _, trial_value = evaluate(candidate, moving[trial])
-            better = trial_value < base[trial]
-            u[moving[trial[better]]] = candidate[better]
-            accepted[trial[better]] = True
-            t *= 0.5
+        rest = np.flatnonzero(~accepted)  # halvings of the rule's step where nothing decreased
+        t = _first_decrease(value_at, moving[rest], current[rest], step[rest], base[rest],
+                            HALVINGS)
+        found = rest[t > 0]
+        u[moving[found]] = current[found] + t[t > 0, None] * step[found]
+        accepted[found] = True
         iterations[moving] += 1
         done[moving[~accepted]] = True  # no decrease left above rounding: stalled
     pair, value = evaluate(u, everything)
     _, _, residual = _mean_rule(pair, u)
+    smoothed_rows = np.zeros(size, dtype=bool)
     if kind == "trace":
         lower = trace_dual_bound(pair, flat_P[:, 0], flat_P[:, 1])
         rows = np.flatnonzero(value - lower > tol * value)
@@ -563,6 +667,7 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
             better = np.isfinite(smoothed_value) & (smoothed_value <= value[rows])
             u[rows[better]] = smoothed[better]
             iterations[rows] += steps  # the continuation's Newton steps
+            smoothed_rows[rows] = True
             lower[rows] = np.maximum(lower[rows], smoothed_lower)  # both are valid bounds
             pair, value = evaluate(u, everything)
             lower = np.maximum(lower, trace_dual_bound(pair, flat_P[:, 0], flat_P[:, 1]))
@@ -570,9 +675,11 @@ def optimal_pair_mean(P, x, kind, start, *, tol=GAP_TOL, residual_tol=RESIDUAL_T
         converged = gap <= tol
     else:
         converged = residual <= residual_tol
-    shaped = [a.reshape(batch + a.shape[1:]) for a in (u, value, iterations, converged, gap)]
+    u, value, iterations, converged, gap, smoothed_rows = [
+        a.reshape(batch + a.shape[1:])
+        for a in (u, value, iterations, converged, gap, smoothed_rows)]
     pair = PairUnion(*[a.reshape(batch + a.shape[1:]) for a in pair])
-    return shaped[0], pair, shaped[1], shaped[2], shaped[3], shaped[4]
+    return u, pair, value, iterations, converged, gap, smoothed_rows
 
 
 def check_union(U, name="the covariance union"):

@@ -64,9 +64,10 @@ def covariance_union(xs, Ps, criterion="trace", mean=None):
         ``"candidates"`` or ``"fixed"``), ``optimal_covariance`` (True for two estimates:
         ``P`` is the smallest bound for ``x``) and, for the optimal mean of two estimates,
         ``iterations`` (for the trace, with the Newton steps of the smoothed continuation
-        that finishes problems the iteration has not certified after 10), ``converged`` and
-        ``gap`` (trace: certified relative excess of the criterion over its minimum over
-        all means; NaN for det).
+        that finishes problems the iteration has not certified after 10 iterations or on
+        which it progresses slowly), ``smoothed`` (True where that continuation finished
+        the problem), ``converged`` and ``gap`` (trace: certified relative excess of the
+        criterion over its minimum over all means; NaN for det).
 
     Raises
     ------
@@ -171,8 +172,9 @@ def _covariance_union(est, criterion="trace", mean=None):
         best = np.argmin(values, axis=-1)
         u = np.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
         if count == 2:
-            u, _, _, iterations, converged, gap = optimal_pair_mean(P, x, kind, u)
-            info.update(rule="optimal", iterations=iterations, converged=converged, gap=gap)
+            u, _, _, iterations, converged, gap, smoothed = optimal_pair_mean(P, x, kind, u)
+            info.update(rule="optimal", iterations=iterations, converged=converged, gap=gap,
+                        smoothed=smoothed)
         else:
             info["rule"] = "candidates"
     U = sequential_union(P, x, u, kind, order)
