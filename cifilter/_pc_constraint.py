@@ -15,7 +15,7 @@ the closed forms and the verification are argued on the documentation page
 import functools
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from ._ellipsoidal import (
     as_full,
@@ -411,9 +411,11 @@ def solve_batch(problem, tie, tol, max_iter):
 # --------------------------------------------------------------------------- the rule
 @functools.lru_cache(maxsize=256)
 def chi_square_threshold(alpha, n):
-    """The threshold of eq. (17): ``P(chi2_n >= gamma) = alpha`` (cached: SciPy's
-    ``chi2.ppf`` costs more than a whole single EI fusion)."""
-    return float(stats.chi2.ppf(1.0 - alpha, df=n))
+    """The threshold of eq. (17): ``P(chi2_n >= gamma) = alpha``: the inverse of the
+    chi-square survival function, taken at ``alpha`` itself (``chi2.ppf(1 - alpha)`` would
+    lose the digits of a small ``alpha`` in ``1 - alpha``). Cached: it costs more than a
+    whole single EI fusion."""
+    return float(special.chdtri(n, alpha))
 
 
 def _flat(array, batch, size):
