@@ -24,22 +24,13 @@ Loops run on ``--loop-runs`` runs and are scaled to runs/s. Rules with a truth h
 import argparse
 import os
 import platform
-import time
 
 import numpy as np
+from bench_ci import best_of  # the benchmarks' timing helper (run as a script from benchmarks/)
 
 import cifilter
 from cifilter import KalmanFilter
 from cifilter.network import NetworkData, naveen_taylor, run_network, simulate_data
-
-
-def best_of(function, repeat, *args, **kwargs):
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        result = function(*args, **kwargs)
-        times.append(time.perf_counter() - start)
-    return min(times), result
 
 
 def per_run(scenario, data, runs, method, **config):
@@ -105,15 +96,16 @@ def main():
     print(header)
     print("-" * len(header))
     for method in args.methods.split(","):
-        config = dict(sequential=args.sequential)
-        batched, track = best_of(run_network, args.repeat, scenario, data, method, **config)
-        looped, _ = best_of(per_run, 1, scenario, data, loop_runs, method, **config)
+        batched, track = best_of(args.repeat, lambda m=method: run_network(
+            scenario, data, m, sequential=args.sequential))
+        looped, _ = best_of(1, lambda m=method: per_run(scenario, data, loop_runs, m,
+                                                        sequential=args.sequential))
         rate, rate_loop = args.runs / batched, loop_runs / looped
         objects = "-"
         ratio_objects = "-"
         if cifilter.get_method(method).truth_options is None:
-            elapsed, results = best_of(per_run_objects, 1, scenario, data, loop_runs, method,
-                                       args.sequential)
+            elapsed, results = best_of(1, lambda m=method: per_run_objects(
+                scenario, data, loop_runs, m, args.sequential))
             worst = max(float(np.max(np.abs(results[r] - track.x[r])))
                         for r in range(loop_runs))
             if worst > 1e-6 * max(1.0, float(np.max(np.abs(track.x)))):
