@@ -31,6 +31,7 @@ from ._linalg import (
     condition_number,
     ill_conditioned,
     lower_inverse,
+    positive_definite,
     solve_lower,
     symmetrize,
 )
@@ -549,16 +550,10 @@ def check_result(P, est):
     conditioning contract against a factor that rounding made singular (only possible
     far beyond condition numbers of ``MAX_CONDITION``).
     """
-    good = np.isfinite(P).all(axis=(-2, -1))
-    if good.all():
-        try:
-            np.linalg.cholesky(P)
-            return
-        except np.linalg.LinAlgError:
-            pass
-    raise ill_conditioned("Pa or Pb", condition_number(est.P).max(),
-                          "gives a fused covariance that is not numerically positive "
-                          "definite")
+    if not positive_definite(P):
+        raise ill_conditioned("Pa or Pb", condition_number(est.P).max(),
+                              "gives a fused covariance that is not numerically positive "
+                              "definite")
 
 
 def ei_in_whitened(w, eps, mutual_mean, regularizer):

@@ -25,6 +25,7 @@ __all__ = [
     "lower_inverse",
     "lower_inverse_single",
     "mahalanobis_sq",
+    "positive_definite",
     "solve_lower",
     "symmetrize",
 ]
@@ -120,6 +121,21 @@ def cholesky_failures(A):
     if len(flat):
         visit(0, len(flat))
     return failed.reshape(A.shape[:-2])
+
+
+def positive_definite(A):
+    """Whether every matrix of a stack (..., n, n) is finite and numerically positive
+    definite: numpy's Cholesky factorisation accepts it and gives a finite factor.
+
+    The check of the conditioning contract on a rule's result (a result that is not finite,
+    symmetric and positive definite is an error, not an answer).
+    """
+    if not np.isfinite(A).all():
+        return False
+    try:
+        return bool(np.isfinite(np.linalg.cholesky(A)).all())
+    except np.linalg.LinAlgError:
+        return False
 
 
 def cholesky(A, name="matrix"):

@@ -33,6 +33,7 @@ from ._linalg import (
     condition_number,
     ill_conditioned,
     lower_inverse,
+    positive_definite,
     solve_lower,
     symmetrize,
 )
@@ -484,13 +485,7 @@ def _finish(x, whitening, V0_mean, R_mean, P0_mean):
 
 def _check_result(x_hat, P, gains, Ps):
     """The conditioning contract: finite, positive definite output, or IllConditionedError."""
-    ok = np.isfinite(x_hat).all() and np.isfinite(gains).all() and np.isfinite(P).all()
-    if ok:
-        try:
-            ok = bool(np.isfinite(np.linalg.cholesky(P)).all())
-        except np.linalg.LinAlgError:
-            ok = False
-    if not ok:
+    if not (np.isfinite(x_hat).all() and np.isfinite(gains).all() and positive_definite(P)):
         raise ill_conditioned("the covariances", condition_number(Ps),
                               "are too ill-conditioned for the Bayesian fusion")
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from . import _kernels
 from ._information import weighted_fusion
-from ._linalg import MAX_CONDITION, cho_inverse, cho_solve, symmetrize
+from ._linalg import MAX_CONDITION, cho_inverse, cho_solve, positive_definite, symmetrize
 from ._validation import (
     as_estimates,
     as_float_array,
@@ -187,12 +187,7 @@ def _blue_semidefinite(J, count, n, name):
     G = ((J_ab @ V) * inverse_mu[..., None, :]) @ np.swapaxes(V, -1, -2)
     K = E.T / count - (G @ B.T) / root  # (..., n, N n), K E = I
     P = symmetrize(K @ J @ np.swapaxes(K, -1, -2))
-    try:
-        np.linalg.cholesky(P)
-        defined = True
-    except np.linalg.LinAlgError:
-        defined = False
-    if not defined or not np.all(np.isfinite(P)):
+    if not positive_definite(P):
         fused = np.linalg.eigvalsh(P)
         index = np.unravel_index(int(np.argmin((fused[..., 0] / fused[..., -1]).ravel())),
                                  fused.shape[:-1])

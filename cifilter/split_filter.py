@@ -6,6 +6,7 @@ from numbers import Real
 
 import numpy as np
 
+from ._linalg import positive_definite
 from ._validation import as_float_array, check_psd
 from .filters import KalmanFilter
 from .split_ci import split_covariance_intersection
@@ -136,10 +137,8 @@ class SplitCIKalmanFilter(KalmanFilter):
         if P_ind.shape != (n, n) or P_dep.shape != (n, n):
             raise ValueError(f"P_ind and P_dep must be {n}x{n} matrices")
         P = P_ind + P_dep
-        try:
-            np.linalg.cholesky(P)
-        except np.linalg.LinAlgError:
-            raise ValueError("P_ind + P_dep must be positive definite") from None
+        if not positive_definite(P):
+            raise ValueError("P_ind + P_dep must be positive definite")
         self._set_parts(P_ind, P_dep)
 
     def _set_parts(self, P_ind, P_dep):
