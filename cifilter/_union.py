@@ -55,8 +55,8 @@ SLOW_PROGRESS = 0.1
 # one leaves a duality gap of at most 0.28 n times it.
 SMOOTHING_STAGES = np.geomspace(1e-3, 1e-12, 10)
 # A row leaves a stage of the continuation when the part of its duality gap that is not the
-# smoothing's own (|e - Z d|^2, :class:`SmoothedPoint`) is below RESIDUAL mu.
-RESIDUAL = 1e-3
+# smoothing's own (|e - Z d|^2, :class:`SmoothedPoint`) is below STAGE_RESIDUAL mu.
+STAGE_RESIDUAL = 1e-3
 
 
 class PairUnion(NamedTuple):
@@ -476,15 +476,15 @@ def smoothed_trace_mean(P, x, u, value, tol=GAP_TOL, newton_steps=10):
     :data:`SMOOTHING_STAGES` times ``value``. At every Newton step the sigmoid of the
     eigenvalues gives a feasible dual point and so a certified lower bound; a row stops when
     it is certified to ``tol``, and leaves a stage when the gap beyond the smoothing's own,
-    ``|e - Z d|^2``, is below :data:`RESIDUAL` ``mu`` (the stage's gap is then within
-    ``(0.28 n + RESIDUAL) mu``), after ``newton_steps`` steps, or when no step decreases the
-    smoothed criterion. From the second stage on, each row first follows the tangent of the
-    path of smoothed minimisers to the new ``mu`` (a predictor, kept where it decreases the
-    new criterion), so that a stage typically needs one or two Newton steps. Converges fast
-    where the optimum sits on several kinks at once. One eigen-decomposition per step serves
-    the certificate, the Newton step and the test of the full step (:func:`smoothed_point`).
-    Returns ``(u, lower, steps)``: the means, the best lower bounds and the Newton steps per
-    row.
+    ``|e - Z d|^2``, is below :data:`STAGE_RESIDUAL` ``mu`` (the stage's gap is then within
+    ``(0.28 n + STAGE_RESIDUAL) mu``), after ``newton_steps`` steps, or when no step
+    decreases the smoothed criterion. From the second stage on, each row first follows the
+    tangent of the path of smoothed minimisers to the new ``mu`` (a predictor, kept where it
+    decreases the new criterion), so that a stage typically needs one or two Newton steps.
+    Converges fast where the optimum sits on several kinks at once. One eigen-decomposition
+    per step serves the certificate, the Newton step and the test of the full step
+    (:func:`smoothed_point`). Returns ``(u, lower, steps)``: the means, the best lower
+    bounds and the Newton steps per row.
     """
     e = u - x[:, 0]
     d = x[:, 1] - x[:, 0]
@@ -495,6 +495,17 @@ def smoothed_trace_mean(P, x, u, value, tol=GAP_TOL, newton_steps=10):
     def difference(rows, e_rows):
         return C_0[rows] - (e_rows[:, :, None] * d[rows, None, :]
                             + d[rows, :, None] * e_rows[:, None, :])
+
+    def move_where_lower(rows, trial, base, mu):
+        """Move ``rows`` to ``trial`` where it is finite and the smoothed criterion there is
+        at most ``base``, with the eigen-decompositions of ``C`` there; the mask moved."""
+        finite = np.isfinite(trial).all(-1)
+        trial = np.where(finite[:, None], trial, e[rows])
+        c_trial, V_trial = np.linalg.eigh(difference(rows, trial))
+        moved = finite & (_smoothed_from_eigen(trial, c_trial, mu) <= base)
+        take = rows[moved]
+        e[take], c[take], V[take] = trial[moved], c_trial[moved], V_trial[moved]
+        return moved
 
     lower = np.full(len(e), -np.inf)
     steps = np.zeros(len(e), dtype=int)
@@ -509,12 +520,8 @@ def smoothed_trace_mean(P, x, u, value, tol=GAP_TOL, newton_steps=10):
             # predictor: follow the tangent to the new mu; kept where it decreases the new
             # smoothed criterion (the Newton steps below correct it)
             mu = mu_all[stage]
-            trial = e[stage] + (mu - mu_last[stage])[:, None] * tangent[stage]
-            c_trial, V_trial = np.linalg.eigh(difference(stage, trial))
-            better = (np.isfinite(trial).all(-1) & (_smoothed_from_eigen(trial, c_trial, mu)
-                      <= _smoothed_from_eigen(e[stage], c[stage], mu)))
-            take = stage[better]
-            e[take], c[take], V[take] = trial[better], c_trial[better], V_trial[better]
+            move_where_lower(stage, e[stage] + (mu - mu_last[stage])[:, None] * tangent[stage],
+                             _smoothed_from_eigen(e[stage], c[stage], mu), mu)
         for newton in range(newton_steps + 1):  # the last pass only certifies
             if stage.size == 0:
                 break
@@ -524,16 +531,12 @@ def smoothed_trace_mean(P, x, u, value, tol=GAP_TOL, newton_steps=10):
             lower[stage] = np.maximum(lower[stage], now.lower)
             certified = now.value - lower[stage] <= tol * now.value
             active[stage[certified]] = False
-            keep = (~certified & (now.residual > RESIDUAL * mu)
+            keep = (~certified & (now.residual > STAGE_RESIDUAL * mu)
                     & np.isfinite(now.step).all(-1) & (newton < newton_steps))
             stage, step, base = stage[keep], now.step[keep], now.smoothed[keep]
             if stage.size == 0:
                 break
-            trial = e[stage] + step
-            c_trial, V_trial = np.linalg.eigh(difference(stage, trial))
-            moved = _smoothed_from_eigen(trial, c_trial, mu_all[stage]) <= base
-            take = stage[moved]
-            e[take], c[take], V[take] = trial[moved], c_trial[moved], V_trial[moved]
+            moved = move_where_lower(stage, e[stage] + step, base, mu_all[stage])
             rest = np.flatnonzero(~moved)  # the full step increases the criterion: backtrack
             if rest.size:
                 t = _first_decrease(
