@@ -13,12 +13,17 @@ from pathlib import Path
 __all__ = []
 
 
+def _converted(text, convert, expected):
+    """``convert(text)``, or the one-line error "expected <expected>, got <text>"."""
+    try:
+        return convert(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+
+
 def positive_int(text):
     """An integer >= 1 (``--runs``, ``--steps``, ``--workers``)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    value = _converted(text, int, "a positive integer")
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
@@ -26,11 +31,7 @@ def positive_int(text):
 
 def seed(text):
     """A non-negative integer (``--seed``; the root of numpy's ``SeedSequence``)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a non-negative integer, got {text!r}") from None
+    value = _converted(text, int, "a non-negative integer")
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be non-negative, got {value}")
     return value
@@ -38,10 +39,7 @@ def seed(text):
 
 def positive_float(text):
     """A finite float > 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    value = _converted(text, float, "a positive number")
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return value
@@ -49,10 +47,7 @@ def positive_float(text):
 
 def probability(text):
     """A float in [0, 1] (e.g. a packet loss probability)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    value = _converted(text, float, "a number in [0, 1]")
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"must be in [0, 1], got {value}")
     return value
