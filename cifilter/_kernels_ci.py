@@ -91,6 +91,39 @@ def _lower_inverse(L, X, n):
 
 
 @_jit
+def _lower_times(L, A, out, n):
+    """out = L A for lower triangular L (its zeros above the diagonal are skipped)."""
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(i + 1):
+                s += L[i, k] * A[k, j]
+            out[i, j] = s
+
+
+@_jit
+def _times_lower(A, L, out, n):
+    """out = A L for lower triangular L (its zeros above the diagonal are skipped)."""
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(j, n):
+                s += A[i, k] * L[k, j]
+            out[i, j] = s
+
+
+@_jit
+def _add_gram(M, out, n):
+    """out += M M^T."""
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for k in range(n):
+                s += M[i, k] * M[j, k]
+            out[i, j] += s
+
+
+@_jit
 def _jacobi_eigh(A, lam, V, n):
     """Eigen-decomposition of the symmetric A (destroyed) by cyclic Jacobi rotations.
 
@@ -278,13 +311,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, 
     if not _jacobi_eigh(S, lam, U, n):
         out_status[b] = 1
         return
-    # T = L1 U
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(i + 1):
-                s += L1[i, k] * U[k, j]
-            T[i, j] = s
+    _lower_times(L1, U, T, n)
     usable = True
     lam_lo = math.inf
     lam_hi = -math.inf
@@ -343,12 +370,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, 
     else:
         for k in range(n):
             e[k] = lam[k] / (1.0 + omega * (lam[k] - 1.0))
-        for i in range(n):  # Tmp = U^T L1^-1
-            for j in range(n):
-                s = 0.0
-                for k in range(j, n):
-                    s += U[k, i] * L1i[k, j]
-                Tmp[i, j] = s
+        _times_lower(U.T, L1i, Tmp, n)
         for i in range(n):
             for j in range(n):
                 s = 0.0
@@ -358,24 +380,18 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, 
     # M1 = K1 L1 / sqrt(omega), M2 = (I - K1) L2 / sqrt(1 - omega)
     r1 = math.sqrt(omega) if omega > 0.0 else 0.0
     r2 = math.sqrt(1.0 - omega) if omega < 1.0 else 0.0
+    for i in range(n):  # Tmp = I - K1 (Tmp is free once K1 is formed)
+        for j in range(n):
+            Tmp[i, j] = (1.0 if i == j else 0.0) - K1[i, j]
+    _times_lower(K1, L1, M1, n)
+    _times_lower(Tmp, L2, M2, n)
     for i in range(n):
         for j in range(n):
-            s1 = 0.0
-            s2 = 0.0
-            for k in range(j, n):
-                s1 += K1[i, k] * L1[k, j]
-                s2 += ((1.0 if i == k else 0.0) - K1[i, k]) * L2[k, j]
-            M1[i, j] = s1 / r1 if omega > 0.0 else 0.0
-            M2[i, j] = s2 / r2 if omega < 1.0 else 0.0
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(n):
-                s += M1[i, k] * M1[j, k]
-            t = 0.0
-            for k in range(n):
-                t += M2[i, k] * M2[j, k]
-            Pf[i, j] = s + t
+            M1[i, j] = M1[i, j] / r1 if omega > 0.0 else 0.0
+            M2[i, j] = M2[i, j] / r2 if omega < 1.0 else 0.0
+            Pf[i, j] = 0.0
+    _add_gram(M1, Pf, n)
+    _add_gram(M2, Pf, n)
     for i in range(n):
         for j in range(i, n):
             s = 0.5 * (Pf[i, j] + Pf[j, i])
@@ -478,24 +494,17 @@ def _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value, ou
             continue
         w = weights[b, k]
         # K_k = w_k (B_k L_k^-1), B_k = R^-T C_k, C_k = R^-1 L_k^-T (as numpy)
-        for i in range(n):
-            for j in range(n):
-                s = 0.0
-                for m in range(i + 1):
-                    s += Ri[i, m] * Li[k, j, m]
-                C[i, j] = s
+        _lower_times(Ri, Li[k].T, C, n)
         for i in range(n):
             for j in range(n):
                 s = 0.0
                 for m in range(i, n):
                     s += Ri[m, i] * C[m, j]
                 Bk[i, j] = s
+        _times_lower(Bk, Li[k], M, n)  # M is scratch until the covariance below
         for i in range(n):
             for j in range(n):
-                s = 0.0
-                for m in range(j, n):
-                    s += Bk[i, m] * Li[k, m, j]
-                value = w * s
+                value = w * M[i, j]
                 out_K[b, k, i, j] = value
                 rem[i, j] -= value
     for i in range(n):
@@ -517,18 +526,11 @@ def _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value, ou
         if not w > 0.0:
             continue
         r = math.sqrt(w)
+        _times_lower(out_K[b, k], L[b, k], M, n)
         for i in range(n):
             for j in range(n):
-                s = 0.0
-                for m in range(j, n):
-                    s += out_K[b, k, i, m] * L[b, k, m, j]
-                M[i, j] = s / r
-        for i in range(n):
-            for j in range(n):
-                s = 0.0
-                for m in range(n):
-                    s += M[i, m] * M[j, m]
-                Pf[i, j] += s
+                M[i, j] = M[i, j] / r
+        _add_gram(M, Pf, n)
     for i in range(n):
         out_x[b, i] = xf[i]
         for j in range(i, n):
