@@ -495,12 +495,7 @@ def _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value, ou
         w = weights[b, k]
         # K_k = w_k (B_k L_k^-1), B_k = R^-T C_k, C_k = R^-1 L_k^-T (as numpy)
         _lower_times(Ri, Li[k].T, C, n)
-        for i in range(n):
-            for j in range(n):
-                s = 0.0
-                for m in range(i, n):
-                    s += Ri[m, i] * C[m, j]
-                Bk[i, j] = s
+        _times_lower(C.T, Ri, Bk.T, n)  # Bk = Ri^T C, written as its transpose C^T Ri
         _times_lower(Bk, Li[k], M, n)  # M is scratch until the covariance below
         for i in range(n):
             for j in range(n):
