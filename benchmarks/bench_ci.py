@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import cifilter  # noqa: E402
-from cifilter._validation import as_estimates  # noqa: E402
+from cifilter._numerics.validation import as_estimates  # noqa: E402
 
 
 def make_sets(size, count, n, seed):

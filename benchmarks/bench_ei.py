@@ -24,7 +24,7 @@ from bench_ci import best_of  # the same timing helper (run as a script from ben
 from scipy import optimize, stats
 
 import cifilter
-from cifilter.demo import simulate
+from cifilter.cli.demo import simulate
 
 inv = np.linalg.inv
 

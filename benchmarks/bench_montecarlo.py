@@ -26,7 +26,7 @@ import re
 import time
 
 from cifilter import montecarlo
-from cifilter.reproduce import weng
+from cifilter.cli.reproduce import weng
 
 
 def _report_without_timings(text):

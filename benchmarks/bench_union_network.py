@@ -29,7 +29,7 @@ from bench_ci import best_of  # the benchmarks' timing helper (run as a script f
 
 import cifilter
 from cifilter import covariance_union, register_method
-from cifilter.demo import run_network_demo
+from cifilter.cli.demo import run_network_demo
 
 
 def record_demo_problems(runs, steps, seed):

@@ -4,7 +4,7 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
 
 * :func:`covariance_intersection` (``"ci"``), with optimal and fast weights, for N estimates;
 * :func:`partial_ci` (``"pci"``), partial-correlation CI given a correlation coefficient
-  bound (Wu, Cai & Fu 2018; trace and correlation bounds in :mod:`cifilter.bounds`);
+  bound (Wu, Cai & Fu 2018; trace and correlation bounds in :mod:`cifilter.rules.bounds`);
 * :mod:`cifilter.horizon`: CI weights chosen for the bound after future filtering
   (Ajgl et al. 2014), also as ``kf.fuse(other, horizon=k)``;
 * :func:`naive_fusion` (``"naive"``) and :func:`optimal_fusion` (``"optimal"``), the
@@ -26,26 +26,33 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
   (:func:`register_method`, :func:`available_methods`).
 """
 
-from . import _rules  # noqa: F401  (registers the built-in rules, in its explicit order)
-from ._linalg import IllConditionedError, mahalanobis_sq
+# The floors, bottom up: importing the rules registers them (in rules.BUILT_IN's order);
+# importing the horizon attaches its hooks to the rules that choose weights for a horizon.
+from . import rules  # noqa: F401
+from ._numerics.linalg import IllConditionedError, mahalanobis_sq
 from .backend import get_backend, set_backend, use_backend
-from .bayes import bayesian_fusion, sample_joint_covariances
-from .ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
-from .cross import cross_covariance_fusion
-from .ei import ellipsoidal_intersection
-from .filters import ExtendedKalmanFilter, FusionMixin, KalmanFilter, UnscentedKalmanFilter
-from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
-from .ici import inverse_covariance_intersection
-from .largest_ellipsoid import largest_ellipsoid
-from .optimal import naive_fusion, optimal_fusion
-from .pci import partial_ci
-from .pcei import pc_ellipsoidal_intersection
 from .registry import FusionMethod, available_methods, fuse, get_method, register_method
 from .result import FusionResult
-from .sampling_ci import sampling_ci
-from .split_ci import split_covariance_intersection
-from .split_filter import SplitCIKalmanFilter
-from .union import covariance_union
+from .rules.bayes import bayesian_fusion, sample_joint_covariances
+from .rules.ci import FAST_OMEGA_RULES, ci_weights, covariance_intersection
+from .rules.cross import cross_covariance_fusion
+from .rules.ei import ellipsoidal_intersection
+from .rules.ici import inverse_covariance_intersection
+from .rules.largest_ellipsoid import largest_ellipsoid
+from .rules.optimal import naive_fusion, optimal_fusion
+from .rules.pci import partial_ci
+from .rules.pcei import pc_ellipsoidal_intersection
+from .rules.sampling_ci import sampling_ci
+from .rules.split_ci import split_covariance_intersection
+from .rules.union import covariance_union
+from .horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
+from .filters import (
+    ExtendedKalmanFilter,
+    FusionMixin,
+    KalmanFilter,
+    SplitCIKalmanFilter,
+    UnscentedKalmanFilter,
+)
 
 __version__ = "0.1.0"
 

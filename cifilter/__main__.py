@@ -1,4 +1,4 @@
-"""``python -m cifilter``: see :mod:`cifilter.cli`."""
+"""``python -m cifilter``: see :mod:`cifilter.cli.main`."""
 
 from .cli import main
 

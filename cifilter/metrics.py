@@ -25,8 +25,8 @@ from functools import lru_cache
 import numpy as np
 from scipy import stats
 
-from ._linalg import cholesky, mahalanobis_sq, solve_lower
-from ._validation import as_float_array, check_int, check_scalar
+from ._numerics.linalg import cholesky, mahalanobis_sq, solve_lower
+from ._numerics.validation import as_float_array, check_int, check_scalar
 
 __all__ = [
     "ANEESResult",

@@ -5,16 +5,17 @@ definiteness, with the Cholesky factors kept) and hands them to the rule's *core
 function that trusts its input; the rule's public function (for instance
 :func:`cifilter.covariance_intersection`) validates and calls the same core. Options such
 as ``horizon=`` are handled here for every rule whose record declares them. The built-in
-rules are registered, in an explicit order, by :mod:`cifilter._rules`.
+rules are registered, in an explicit order, by :mod:`cifilter.rules`.
 """
 
+import dataclasses
 import inspect
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import numpy as np
 
-from ._validation import as_estimates, restore_style
+from ._numerics.validation import as_estimates, restore_style
 from .result import FusionResult
 
 __all__ = ["FusionMethod", "available_methods", "fuse", "get_method", "register_method"]
@@ -63,7 +64,7 @@ class FusionMethod:
         and the benchmarks use it to run every registered rule without knowing it.
     core : callable or None
         ``core(estimates, **options) -> FusionResult`` on validated estimates (a
-        :class:`cifilter._validation.Estimates`: means ``x`` (..., N, n), covariances ``P``
+        :class:`cifilter._numerics.validation.Estimates`: means ``x`` (..., N, n), covariances ``P``
         (..., N, n, n), their Cholesky factors ``L`` and the caller's vector style
         ``column``); it returns ``x`` in the caller's style. :func:`fuse` calls it when
         given, so the estimates are validated once; otherwise it calls ``function``.
@@ -224,6 +225,48 @@ def register_method(name, function, *, summary="", reference="", guarantee="none
                           core, horizon, weights)
     _REGISTRY[name] = record
     return record
+
+
+def attach_horizon(name, hook):
+    """Give a registered rule its horizon hook (see :class:`FusionMethod`).
+
+    The rules sit below :mod:`cifilter.horizon`, so their records cannot name the hook that
+    chooses their weights for a horizon; the horizon package attaches it when it is
+    imported. The record keeps its place in the registration order.
+
+    Parameters
+    ----------
+    name : str
+        A registered method name whose record has a ``core``.
+    hook : callable
+        ``hook(estimates, model, steps, options) -> (core_options, info)``.
+
+    Returns
+    -------
+    FusionMethod
+        The new record.
+
+    Raises
+    ------
+    ValueError
+        If no rule of that name is registered.
+    TypeError
+        If ``hook`` is not callable or the rule has no ``core``.
+
+    Examples
+    --------
+    >>> from cifilter.registry import get_method
+    >>> get_method("ci").horizon.__name__
+    'ci_horizon_options'
+    """
+    record = get_method(name)
+    if not callable(hook):
+        raise TypeError(f"hook must be callable, got {type(hook).__name__}")
+    if record.core is None:
+        raise TypeError(f"method {name!r} has no core: the front door fuses with the chosen "
+                        "weights through the rule's core")
+    _REGISTRY[name] = dataclasses.replace(record, horizon=hook)
+    return _REGISTRY[name]
 
 
 def available_methods():

@@ -47,7 +47,7 @@ except ImportError as error:  # pragma: no cover - exercised only without Stone 
         "pip install cifilter[stonesoup]"
     ) from error
 
-from ._criteria import parse_criterion
+from ._numerics.criteria import parse_criterion
 from .registry import fuse, get_method
 from .result import FusionResult
 

@@ -20,7 +20,7 @@ from worst_case import assert_bound_holds
 
 import cifilter
 from cifilter import IllConditionedError, covariance_intersection, naive_fusion
-from cifilter._kernels import THREADED_MIN
+from cifilter._kernels.dispatch import THREADED_MIN
 from cifilter.backend import AUTO_MIN_BATCH, BACKENDS, numba_available
 
 needs_numba = pytest.mark.skipif(not numba_available(), reason="numba is not installed")

@@ -170,7 +170,7 @@ def test_builtin_rules_are_registered_in_their_documented_order():
 
 def test_fuse_validates_the_estimates_once(monkeypatch):
     """The rule's core gets the validated estimates: no second check of the covariances."""
-    import cifilter._validation as validation
+    import cifilter._numerics.validation as validation
 
     calls = []
     original = validation.as_estimates
@@ -179,8 +179,8 @@ def test_fuse_validates_the_estimates_once(monkeypatch):
         calls.append(1)
         return original(*args, **kwargs)
 
-    for module in (validation, registry_module, cifilter.ci, cifilter.pci, cifilter.optimal,
-                   cifilter.bayes):
+    rules = cifilter.rules
+    for module in (validation, registry_module, rules.ci, rules.pci, rules.optimal, rules.bayes):
         if hasattr(module, "as_estimates"):
             monkeypatch.setattr(module, "as_estimates", counting)
     for method, options in [("ci", {}), ("ci", {"omega": "fast"}), ("naive", {}),

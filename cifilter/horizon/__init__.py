@@ -12,10 +12,16 @@ comparison over horizons) and :mod:`~cifilter.horizon.fusion` (the hooks of
 ``cifilter.fuse(..., horizon=)``).
 """
 
+from ..registry import attach_horizon
 from .fusion import ci_horizon_options, pci_horizon_options
 from .model import propagate_bound, steady_state_covariance
 from .study import HorizonStudy, horizon_study
 from .weights import HorizonOmega, horizon_weights, optimal_omega
+
+# The horizon sits above the rules: it gives the rules that can choose their weights for a
+# horizon their hook here, so that cifilter.fuse(..., horizon=) works for them.
+attach_horizon("ci", ci_horizon_options)
+attach_horizon("pci", pci_horizon_options)
 
 __all__ = [
     "HorizonOmega",

@@ -2,7 +2,7 @@
 
 The trace criteria, and ``log det`` where ``P_c = 0`` (horizon 0), are Covariance
 Intersection problems of the matrices ``S_i^-1`` and are solved by the ``"ci"`` rule's
-solver, :func:`cifilter._ci_weights.optimal_weights`; at horizon 0 (and wherever
+solver, :func:`cifilter.rules._ci_weights.optimal_weights`; at horizon 0 (and wherever
 ``Gamma = 0``) these matrices are the covariances themselves, so the weights are those of
 the rule. ``log det`` with ``P_c != 0`` has its own solvers: an interval Newton method for
 two estimates and the active-set Newton method on the simplex for more. Derivations:
@@ -11,12 +11,12 @@ two estimates and the active-set Newton method on the simplex for more. Derivati
 
 import numpy as np
 
-from .._ci_weights import optimal_weights
-from .._criteria import certified_gap
-from .._information import weighted_information
-from .._linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
-from .._optimize import minimize_convex_interval, minimize_convex_simplex
-from .._validation import Estimates
+from .._numerics.criteria import certified_gap
+from .._numerics.information import weighted_information
+from .._numerics.linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
+from .._numerics.optimize import minimize_convex_interval, minimize_convex_simplex
+from .._numerics.validation import Estimates
+from ..rules._ci_weights import optimal_weights
 from ._model import propagated_bound
 
 __all__ = ["ci_fused_information", "ci_horizon_weights"]

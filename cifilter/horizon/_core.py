@@ -1,6 +1,6 @@
 """The horizon choice on validated input, shared by the public functions and the hooks.
 
-:func:`choose` takes validated estimates (:class:`cifilter._validation.Estimates`), a
+:func:`choose` takes validated estimates (:class:`cifilter._numerics.validation.Estimates`), a
 validated :class:`~cifilter.horizon._model.Model` and a parsed criterion, runs the Riccati
 recursion once, and solves the CI (:mod:`cifilter.horizon._ci`) or partial-CI
 (:mod:`cifilter.horizon._pci`) problem at the horizon and at horizon 0 (the recursive
@@ -13,10 +13,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._information import lower_inverse_stack
-from .._linalg import IllConditionedError
-from .._partial_correlation import check_rho, effective_rho, partial_weights
-from .._validation import Estimates, as_float_array
+from .._numerics.information import lower_inverse_stack
+from .._numerics.linalg import IllConditionedError
+from .._numerics.validation import Estimates, as_float_array
+from ..rules._partial_correlation import check_rho, effective_rho, partial_weights
 from ._ci import ci_fused_information, ci_horizon_weights
 from ._model import (
     at_horizon,

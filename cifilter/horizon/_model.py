@@ -13,9 +13,9 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from .._criteria import criterion_value
-from .._linalg import cho_solve, cholesky, solve_lower, symmetrize
-from .._validation import as_float_array, as_matrix, check_covariances, check_psd
+from .._numerics.criteria import criterion_value
+from .._numerics.linalg import cho_solve, cholesky, solve_lower, symmetrize
+from .._numerics.validation import as_float_array, as_matrix, check_covariances, check_psd
 
 __all__ = [
     "Model",
@@ -478,7 +478,7 @@ def criterion_at(P_hat, exponent, kind, W, where):
 
 def checked_bound(P_hat, exponent, where):
     """``2^e P_hat``: finite (ValueError otherwise) and positive definite (else the error of
-    :func:`cifilter._linalg.cholesky` for the first failing item, naming the horizon).
+    :func:`cifilter._numerics.linalg.cholesky` for the first failing item, naming the horizon).
 
     The condition number is not limited: an unstable model's bound legitimately exceeds
     the conditioning contract of the inputs while it is still positive definite.

@@ -4,17 +4,17 @@ With ``w_i(delta) = delta_i / (rho_i + (1 - rho_i) delta_i)`` the bound at the h
 ``P_c + exp(2 s) Psi S(delta)^-1 Psi^T`` with ``S(delta) = sum_i w_i P_i^-1 + Gamma``, convex
 in ``delta``; the active-set Newton method on the simplex minimises it with exact gradients
 and Hessians chained through eq. (24). At horizon 0 the trace criterion is the ``"pci"``
-rule's problem (35) and its solver, :func:`cifilter._partial_correlation.newton_delta`, is
+rule's problem (35) and its solver, :func:`cifilter.rules._partial_correlation.newton_delta`, is
 used. Derivations, the ``log det`` reformulation and the floor of tiny bounds:
 ``docs/methods/horizon.rst``, "Partial-correlation CI".
 """
 
 import numpy as np
 
-from .._information import squared_norms, weighted_information
-from .._linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
-from .._optimize import minimize_convex_segment, minimize_convex_simplex
-from .._partial_correlation import (
+from .._numerics.information import squared_norms, weighted_information
+from .._numerics.linalg import cho_inverse, cho_solve, cholesky, solve_lower, symmetrize
+from .._numerics.optimize import minimize_convex_segment, minimize_convex_simplex
+from ..rules._partial_correlation import (
     NEWTON_RHO_FLOOR,
     bound_and_spread,
     newton_delta,

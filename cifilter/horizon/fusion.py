@@ -5,8 +5,8 @@ hooks validate the model and the criterion once and run the core shared with
 :func:`~cifilter.horizon.horizon_weights`. See ``docs/methods/horizon.rst``.
 """
 
-from .._criteria import parse_criterion
-from .._validation import check_int
+from .._numerics.criteria import parse_criterion
+from .._numerics.validation import check_int
 from ._core import as_rho, choose, problem_of
 from ._model import as_model, model_parts
 
@@ -47,7 +47,7 @@ def ci_horizon_options(estimates, model, steps, options):
 
     Parameters
     ----------
-    estimates : cifilter._validation.Estimates
+    estimates : cifilter._numerics.validation.Estimates
         The validated estimates (covariances and their Cholesky factors are used as they
         are).
     model : mapping or object
@@ -94,7 +94,7 @@ def pci_horizon_options(estimates, model, steps, options):
 
     Parameters
     ----------
-    estimates : cifilter._validation.Estimates
+    estimates : cifilter._numerics.validation.Estimates
         The validated estimates.
     model : mapping or object
         ``F``, ``Q`` and optionally ``H``, ``R``, ``G`` of the steps after the fusion.

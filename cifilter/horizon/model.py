@@ -8,8 +8,8 @@ Ajgl et al. 2014); :func:`steady_state_covariance` is their limit (eq. 35). See
 import numpy as np
 from scipy import linalg as sla
 
-from .._linalg import condition_number, ill_conditioned, symmetrize
-from .._validation import as_float_array, as_matrix, check_covariances, check_int
+from .._numerics.linalg import condition_number, ill_conditioned, symmetrize
+from .._numerics.validation import as_float_array, as_matrix, check_covariances, check_int
 from ._model import as_model, at_horizon, checked_bound, riccati_scaled, update
 
 __all__ = ["propagate_bound", "steady_state_covariance"]

@@ -10,8 +10,8 @@ from typing import Optional
 
 import numpy as np
 
-from .._criteria import criterion_value, parse_criterion
-from .._validation import Estimates, as_covariances, check_int
+from .._numerics.criteria import criterion_value, parse_criterion
+from .._numerics.validation import Estimates, as_covariances, check_int
 from ._core import (
     Problem,
     as_rho,

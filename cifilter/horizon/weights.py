@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from .._criteria import parse_criterion
-from .._partial_correlation import partial_weights
-from .._validation import as_covariances, check_int
+from .._numerics.criteria import parse_criterion
+from .._numerics.validation import as_covariances, check_int
+from ..rules._partial_correlation import partial_weights
 from ._core import as_rho, bind_arguments, choose, documented_signature, problem_of
 from ._model import as_model
 

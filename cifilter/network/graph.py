@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from .._validation import as_float_array, check_covariances, check_int, check_scalar
+from .._numerics.validation import as_float_array, check_covariances, check_int, check_scalar
 
 __all__ = [
     "NAVEEN_TAYLOR_EDGES",
@@ -36,7 +36,7 @@ __all__ = [
 
 NAVEEN_TAYLOR_EDGES = ((0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 0), (1, 4))
 """Edges of Naveen & Taylor's six-node network (their Fig. 5 is missing from the text;
-a ring with one chord, as in :mod:`cifilter.reproduce.naveen`)."""
+a ring with one chord, as in :mod:`cifilter.cli.reproduce.naveen`)."""
 
 POSITION = (0, 2)  # x and y in the state [x, vx, y, vy]
 _START = np.array([0.0, 10.0, 0.0, 5.0])
@@ -416,7 +416,7 @@ def _build(name, adjacency, R, positions, description, dt, q):
 def naveen_taylor(*, sigma=5.0, dof=30, dt=1.0, q=0.5, sensor_seed=2):
     """The six-node network of Naveen & Taylor (Section V-B), tracking a moving target.
 
-    The topology is that of their Fig. 5 as :mod:`cifilter.reproduce.naveen` reads it (the
+    The topology is that of their Fig. 5 as :mod:`cifilter.cli.reproduce.naveen` reads it (the
     figure is missing from the text: a ring of six with the chord 1-4,
     :data:`NAVEEN_TAYLOR_EDGES`). As their nodes start with covariances drawn from an
     inverse Wishart distribution with 30 degrees of freedom, each node here measures the

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._linalg import cholesky
-from .._validation import as_rng, check_int, check_scalar
+from .._numerics.linalg import cholesky
+from .._numerics.validation import as_rng, check_int, check_scalar
 from ..registry import fuse, get_method
 from .graph import Scenario
 

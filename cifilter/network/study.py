@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import metrics
-from .._validation import as_rng, check_int, check_scalar
+from .._numerics.validation import as_rng, check_int, check_scalar
 from ..registry import available_methods, get_method
 from .graph import Scenario
 from .simulate import centralised, run_network, simulate_data

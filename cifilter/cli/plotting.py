@@ -1,0 +1,99 @@
+"""Small plotting helpers (matplotlib is imported only when a function draws)."""
+
+import numpy as np
+from scipy import stats
+
+from .._numerics.validation import as_float_array, check_covariances, check_scalar
+
+__all__ = ["covariance_ellipse", "plot_covariance_ellipse"]
+
+
+def covariance_ellipse(P, mean=(0.0, 0.0), confidence=0.95, n_points=100):
+    """Points on the confidence ellipse of a 2-D Gaussian.
+
+    Parameters
+    ----------
+    P : array_like, shape (2, 2)
+        Covariance (symmetric positive definite).
+    mean : array_like, shape (2,), optional
+        Centre of the ellipse.
+    confidence : float, optional
+        Probability mass inside the ellipse, in (0, 1); the squared radius is the
+        chi-square quantile with 2 degrees of freedom. ``None`` draws the unit ellipse
+        ``e^T P^-1 e = 1`` (as in the figures of Ajgl et al. 2014).
+    n_points : int, optional
+        Number of points.
+
+    Returns
+    -------
+    ndarray, shape (2, n_points)
+        The closed curve (first point repeated at the end).
+
+    Raises
+    ------
+    ValueError
+        ``P`` not a 2x2 symmetric positive definite matrix, ``confidence`` outside (0, 1).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.cli.plotting import covariance_ellipse
+    >>> covariance_ellipse(np.eye(2), confidence=None, n_points=5).round(3)[:, 0].tolist()
+    [1.0, 0.0]
+    """
+    P = as_float_array(P, "P")
+    if P.shape != (2, 2):
+        raise ValueError(f"P must be a 2x2 covariance, got shape {P.shape}")
+    P, L = check_covariances(P, "P")
+    radius = 1.0
+    if confidence is not None:
+        confidence = check_scalar(confidence, "confidence", low=0, high=1, low_open=True,
+                                  high_open=True)
+        radius = np.sqrt(stats.chi2.ppf(confidence, df=2))
+    angle = np.linspace(0.0, 2.0 * np.pi, n_points)
+    circle = np.stack([np.cos(angle), np.sin(angle)])
+    return np.asarray(mean, dtype=float).reshape(2, 1) + radius * (L @ circle)
+
+
+def plot_covariance_ellipse(ax, P, mean=(0.0, 0.0), confidence=0.95, *, equal_aspect=True,
+                            **line_kwargs):
+    """Draw a covariance ellipse on a matplotlib axes (with equal aspect by default).
+
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes
+        Where to draw.
+    P : array_like, shape (2, 2)
+        Covariance.
+    mean : array_like, shape (2,), optional
+        Centre.
+    confidence : float or None, optional
+        See :func:`covariance_ellipse`.
+    equal_aspect : bool, optional
+        Give the axes an equal aspect ratio (default True): an ellipse drawn with unequal
+        scales misstates which direction is uncertain.
+    **line_kwargs
+        Passed to ``ax.plot``.
+
+    Returns
+    -------
+    list of matplotlib.lines.Line2D
+        The drawn line.
+
+    Examples
+    --------
+    >>> import matplotlib
+    >>> matplotlib.use("Agg")
+    >>> import matplotlib.pyplot as plt
+    >>> import numpy as np
+    >>> from cifilter.cli.plotting import plot_covariance_ellipse
+    >>> fig, ax = plt.subplots()
+    >>> lines = plot_covariance_ellipse(ax, np.diag([4.0, 1.0]), label="P")
+    >>> ax.get_aspect()
+    1.0
+    >>> plt.close(fig)
+    """
+    points = covariance_ellipse(P, mean, confidence)
+    if equal_aspect:
+        ax.set_aspect("equal")
+    return ax.plot(points[0], points[1], **line_kwargs)

@@ -1,0 +1,338 @@
+"""filterpy filter classes that can fuse their estimate with other estimates.
+
+``cifilter.KalmanFilter`` is ``filterpy.kalman.KalmanFilter`` with one more method,
+:meth:`FusionMixin.fuse`; constructors, ``predict`` and ``update`` are filterpy's own.
+
+Supported: filterpy 1.4.5 and 2.x. The classes inherit everything from the installed
+filterpy, so what filterpy 2.0 changed (``KalmanFilter.M`` of shape (dim_x, dim_z),
+``UnscentedKalmanFilter(..., state_add=)``, ``Saver.to_array(flatten=)``, ``stats.NEES``)
+is there exactly when it is in filterpy; ``fuse`` uses only what both versions share
+(``x``, ``P``, ``x_post``, ``P_post`` and, for ``horizon=``, ``F``, ``Q``, ``H``, ``R``).
+Until ``fuse`` is called a filter gives bit for bit the results of filterpy's class.
+(filterpy 1.4.5's ``KalmanFilter.mahalanobis``, and so its ``repr`` and ``Saver``, raise
+``TypeError`` with recent numpy, seen with 2.4.6, for filterpy's own class alike.)
+"""
+
+import math
+import warnings
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter as _FilterpyEKF
+from filterpy.kalman import KalmanFilter as _FilterpyKF
+from filterpy.kalman import UnscentedKalmanFilter as _FilterpyUKF
+
+from ..registry import fuse_estimates, split_estimate
+
+__all__ = ["ExtendedKalmanFilter", "FusionMixin", "KalmanFilter", "UnscentedKalmanFilter"]
+
+
+def _is_estimate_pair(item):
+    """An (x, P) pair: a 2-sequence of a vector and a matrix (not of two estimates)."""
+    if not (isinstance(item, (tuple, list)) and len(item) == 2):
+        return False
+    if any(hasattr(part, "P") for part in item):
+        return False
+    try:
+        return np.ndim(item[0]) >= 1 and np.ndim(item[1]) >= 2
+    except ValueError:  # a ragged pair of pairs
+        return False
+
+
+def _as_estimate_list(other):
+    """``other`` as a list of estimates: a filter, an (x, P) pair or a sequence of them."""
+    if hasattr(other, "x") and hasattr(other, "P"):
+        return [other]
+    if _is_estimate_pair(other):
+        return [other]
+    if isinstance(other, (tuple, list)) and len(other) > 0 and all(
+        (hasattr(o, "x") and hasattr(o, "P")) or _is_estimate_pair(o) for o in other
+    ):
+        return list(other)
+    if isinstance(other, (tuple, list)) and len(other) == 2 and not any(
+        hasattr(o, "P") or _is_estimate_pair(o) for o in other
+    ):
+        return [other]  # an (x, P) pair of the wrong shapes: the validation names them
+    raise TypeError(
+        "other must be a filter (an object with .x and .P), an (x, P) pair, or a non-empty "
+        f"list of them; got {type(other).__name__}"
+    )
+
+
+def _labels(count, other_is_list):
+    """Names of the estimates in messages: this filter, then other or other[i]."""
+    if not other_is_list:
+        return ("this filter", "other")
+    return ("this filter",) + tuple(f"other[{i}]" for i in range(count - 1))
+
+
+def _single_estimates(estimates, labels):
+    """(x, P) pairs of single estimates, with any x holding n numbers as a vector.
+
+    A filter's ``x`` may have any shape holding its n numbers (filterpy's (n, 1), the
+    UKF's (n,), or (1, n)); (n,) and (n, 1) pass unchanged, other shapes become (n,).
+    Batches (a covariance with more than two axes, an x with more than n numbers) are
+    rejected with a ``ValueError`` naming the estimate. Nothing is copied or modified here;
+    the validation of the fusion copies.
+    """
+    pairs = []
+    for i, item in enumerate(estimates):
+        x, P = split_estimate(item, i, labels)
+        if (isinstance(x, np.ndarray) and isinstance(P, np.ndarray) and P.ndim == 2
+                and x.shape in ((P.shape[0],), (P.shape[0], 1))):
+            pairs.append((x, P))  # the usual filterpy shapes: nothing to check here
+            continue
+        try:
+            x_shape, P_shape = np.shape(x), np.shape(P)
+        except ValueError:  # ragged input: the validation names it
+            pairs.append((x, P))
+            continue
+        if len(P_shape) > 2:
+            raise ValueError(
+                f"{labels[i]}'s P has shape {P_shape}, a batch of covariances; a filter fuses "
+                "single estimates (use cifilter.fuse for batches)"
+            )
+        if len(P_shape) == 2 and P_shape[0] == P_shape[1]:
+            n, size = P_shape[0], int(np.prod(x_shape, dtype=int))
+            if size != n:
+                raise ValueError(
+                    f"{labels[i]}'s x has shape {x_shape} ({size} numbers), but its P is "
+                    f"{n}x{n}; a filter fuses single estimates whose x holds n numbers"
+                )
+            if x_shape not in ((n,), (n, 1)):
+                x = np.reshape(x, (n,))
+        pairs.append((x, P))
+    return pairs
+
+
+def _own_model(filt):
+    """The filter's linear model (F, Q, H, R) for ``horizon=`` without ``model=``."""
+    missing = [name for name in ("F", "Q", "H", "R")
+               if not isinstance(getattr(filt, name, None), (np.ndarray, int, float))]
+    if missing:
+        raise ValueError(
+            f"horizon= needs the filter's linear model, but {type(filt).__name__} has no "
+            f"matrix {', '.join(missing)}; pass model=dict(F=..., Q=..., H=..., R=...)"
+        )
+    return {name: getattr(filt, name) for name in ("F", "Q", "H", "R")}
+
+
+class FusionMixin:
+    """Adds :meth:`fuse` to a filterpy-style filter.
+
+    The filter must have attributes ``x`` (state, any shape holding n numbers, e.g.
+    ``(n, 1)`` or ``(n,)``) and ``P`` (``(n, n)`` covariance). Put the mixin first in the
+    bases so that its method is found: ``class MyFilter(FusionMixin, SomeFilterpyFilter)``.
+
+    Attributes
+    ----------
+    last_fusion : FusionResult or None
+        The result of the latest successful :meth:`fuse` (None before the first).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from filterpy.kalman import InformationFilter
+    >>> from cifilter import FusionMixin
+    >>> class FusingKF(FusionMixin, InformationFilter):
+    ...     pass
+    """
+
+    last_fusion = None
+
+    def fuse(self, other, method="ci", *, horizon=None, model=None, future=None, **options):
+        """Fuse this filter's estimate with other estimates whose correlation is unknown.
+
+        The filter's own ``(x, P)`` is the first input of the fusion rule; its ``x`` (and
+        that of the other estimates) may have any shape holding its n numbers, such as
+        filterpy's ``(n, 1)``, ``(n,)`` or ``(1, n)``. On success the
+        filter's ``x`` and ``P`` are replaced by the fused estimate (``x`` keeps its
+        filterpy shape), ``x_post`` and ``P_post`` are set to copies as ``update`` does,
+        and the result is stored in ``last_fusion``. The operation is atomic: if the
+        fusion raises, the filter is exactly as before. ``other`` is never modified.
+
+        Parameters
+        ----------
+        other : filter, (x, P) pair, or list of them
+            The estimates to fuse with: another filter (anything with ``.x`` and ``.P``),
+            an ``(x, P)`` pair, or a list of filters and pairs.
+        method : str, optional
+            A registered fusion rule (see :func:`cifilter.available_methods`), default
+            ``"ci"``.
+        horizon : int, optional
+            Choose the rule's weights for the bound ``horizon`` predict/update steps after
+            the fusion (Ajgl et al. 2014), for the rules that support it (``"ci"``, and
+            ``"pci"`` with ``rho``), using the filter's own ``F``, ``Q``, ``H``, ``R`` or
+            ``model``. This is :func:`cifilter.fuse`'s ``horizon=``: ``info["rule"]`` is
+            ``"horizon"`` and ``info["horizon"]`` holds the choice (``steps``,
+            ``criterion``, ``value``, and for comparison ``value_recursive`` and
+            ``weights_recursive``, the criterion at the horizon with the weights that are
+            optimal now, and those weights). ``horizon=0`` is the ordinary rule.
+        model : mapping or object, optional
+            The model of the steps after the fusion, instead of the filter's own: a mapping
+            or an object (such as another ``KalmanFilter``) with ``F`` and ``Q`` and
+            optionally ``H``, ``R`` (None or absent: no measurements) and ``G``; ``H`` and
+            ``R`` may be per-step lists (see :func:`cifilter.horizon.propagate_bound`).
+            Needed for filters without matrices ``F``, ``Q``, ``H``, ``R`` (the EKF and UKF).
+        future : mapping or object, optional
+            Former name of ``model`` (deprecated; a ``DeprecationWarning``).
+        **options
+            Options of the rule (e.g. ``criterion="det"`` or ``omega="fast"`` for
+            ``"ci"``).
+
+        Returns
+        -------
+        FusionResult
+            The fusion result (also stored in ``last_fusion``).
+
+        Raises
+        ------
+        TypeError
+            ``other`` is not an estimate or a list of estimates; an unknown option.
+        ValueError
+            Dimension mismatch, non-finite values, a covariance that is not symmetric
+            positive definite, batched inputs, or a bad option value; ``horizon`` with a
+            method other than ``"ci"`` and ``"pci"`` or together with ``omega`` (``"ci"``)
+            or ``delta`` (``"pci"``), ``"pci"`` without ``rho``, ``model`` without
+            ``horizon``, a filter without a linear model and no ``model``. Messages name
+            the estimate: ``"this filter's P"``, ``"other's x"`` or ``"other[i]'s P"`` (for a
+            list).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from cifilter import KalmanFilter
+        >>> kf = KalmanFilter(dim_x=2, dim_z=1)
+        >>> kf.P = np.diag([1.0, 4.0])
+        >>> result = kf.fuse((np.ones(2), np.diag([4.0, 1.0])))
+        >>> kf.x.shape, float(np.trace(kf.P)), float(result.omega[0])
+        ((2, 1), 3.2, 0.5)
+
+        Choosing omega for the bound after ten more steps of this filter:
+
+        >>> kf.F, kf.H = np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([[1.0, 0.0]])
+        >>> result = kf.fuse((np.ones(2), np.diag([4.0, 1.0])), horizon=10)
+        >>> result.info["rule"], result.info["horizon"]["steps"]
+        ('horizon', 10)
+
+        The same with partial-correlation CI for a correlation coefficient bound of 0.5:
+
+        >>> result = kf.fuse((np.ones(2), np.diag([4.0, 1.0])), method="pci", rho=0.5,
+        ...                  horizon=10)
+        >>> result.method, result.info["rule"], bool(result.info["converged"])
+        ('pci', 'horizon', True)
+        """
+        others = _as_estimate_list(other)
+        labels = _labels(1 + len(others), not (len(others) == 1 and others[0] is other))
+        estimates = _single_estimates([(self.x, self.P)] + others, labels)
+        if future is not None:
+            if model is not None:
+                raise ValueError("give model= only (future= is its former name)")
+            warnings.warn("kf.fuse(..., future=) is now model=, as in cifilter.fuse",
+                          DeprecationWarning, stacklevel=2)
+            model = future
+        if horizon is not None and model is None:
+            model = _own_model(self)
+        result = fuse_estimates(estimates, method, options, horizon=horizon, model=model,
+                                labels=labels)
+        x_shape = np.shape(self.x)
+        x = np.asarray(result.x)
+        if x.size != math.prod(x_shape) or np.shape(result.P) != np.shape(self.P):
+            raise ValueError(
+                f"fusion gave x of shape {x.shape} and P of shape {np.shape(result.P)}; a "
+                f"filter with x of shape {x_shape} fuses single (unbatched) estimates only"
+            )
+        # Everything that can fail (including the copies) has run; now change the filter.
+        x_new, P_new = np.array(x.reshape(x_shape)), np.array(result.P)
+        x_post, P_post = x_new.copy(), P_new.copy()
+        self.x, self.P, self.x_post, self.P_post = x_new, P_new, x_post, P_post
+        self.last_fusion = result
+        return result
+
+
+class KalmanFilter(FusionMixin, _FilterpyKF):
+    """filterpy's ``KalmanFilter`` with :meth:`~FusionMixin.fuse`.
+
+    Same constructor and behaviour as ``filterpy.kalman.KalmanFilter``; see its
+    documentation for ``x``, ``P``, ``F``, ``Q``, ``H``, ``R``, ``predict`` and ``update``.
+
+    Parameters
+    ----------
+    dim_x : int
+        Number of state variables.
+    dim_z : int
+        Number of measurement inputs.
+    dim_u : int, optional
+        Size of the control input (default 0).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter import KalmanFilter
+    >>> kf = KalmanFilter(dim_x=2, dim_z=1)
+    >>> kf.F = np.array([[1.0, 1.0], [0.0, 1.0]])
+    >>> kf.H = np.array([[1.0, 0.0]])
+    >>> kf.predict(); kf.update(np.array([[1.0]]))
+    >>> _ = kf.fuse((np.array([1.0, 0.0]), np.eye(2)), method="ci")
+    """
+
+
+class ExtendedKalmanFilter(FusionMixin, _FilterpyEKF):
+    """filterpy's ``ExtendedKalmanFilter`` with :meth:`~FusionMixin.fuse`.
+
+    Same constructor and behaviour as ``filterpy.kalman.ExtendedKalmanFilter``.
+
+    Parameters
+    ----------
+    dim_x : int
+        Number of state variables.
+    dim_z : int
+        Number of measurement inputs.
+    dim_u : int, optional
+        Size of the control input (default 0).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter import ExtendedKalmanFilter
+    >>> ekf = ExtendedKalmanFilter(dim_x=2, dim_z=1)
+    >>> _ = ekf.fuse((np.zeros(2), np.eye(2)))
+    """
+
+
+class UnscentedKalmanFilter(FusionMixin, _FilterpyUKF):
+    """filterpy's ``UnscentedKalmanFilter`` with :meth:`~FusionMixin.fuse`.
+
+    Same constructor and behaviour as ``filterpy.kalman.UnscentedKalmanFilter``; its
+    state ``x`` is a 1-D array and stays one after fusion.
+
+    Parameters
+    ----------
+    dim_x : int
+        Number of state variables.
+    dim_z : int
+        Number of measurement inputs.
+    dt : float
+        Time step.
+    hx : callable
+        Measurement function.
+    fx : callable
+        State transition function.
+    points : object
+        Sigma point generator, e.g. ``filterpy.kalman.MerweScaledSigmaPoints``.
+    sqrt_fn, x_mean_fn, z_mean_fn, residual_x, residual_z, state_add : callable, optional
+        As in filterpy: matrix square root, state and measurement means, residuals and
+        state addition (for angles and other non-Euclidean states; ``state_add`` exists
+        from filterpy 2.0 on).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from filterpy.kalman import MerweScaledSigmaPoints
+    >>> from cifilter import UnscentedKalmanFilter
+    >>> points = MerweScaledSigmaPoints(2, alpha=0.1, beta=2.0, kappa=1.0)
+    >>> ukf = UnscentedKalmanFilter(2, 1, 1.0, hx=lambda x: x[:1], fx=lambda x, dt: x,
+    ...                             points=points)
+    >>> _ = ukf.fuse((np.ones(2), np.eye(2)))
+    >>> ukf.x.shape
+    (2,)
+    """

@@ -1,0 +1,302 @@
+"""Inverse Covariance Intersection of two estimates: the bound as a fusion of inflated
+covariances, its criterion derivatives in omega, and the certified optimum.
+
+Inverse Covariance Intersection (Noack, Sijs, Reinhardt & Hanebeck 2017) fuses
+
+    P^-1 = Pa^-1 + Pb^-1 - Gamma^-1,   Gamma = omega Pa + (1 - omega) Pb,
+
+with gains ``Ka = P (Pa^-1 - omega Gamma^-1)``, ``Kb = P (Pb^-1 - (1 - omega) Gamma^-1)``.
+Written as it stands, ``P^-1`` is a difference of information matrices and cancels. The
+same ``P`` and gains are (``docs/methods/ici.rst``, "Numerical formulation")
+
+    P^-1 = (1 - omega) Ya^-1 + omega Yb^-1,
+    Ya = (1 - omega) Pa + omega Pa Pb^-1 Pa,   Yb = omega Pb + (1 - omega) Pb Pa^-1 Pb,
+
+a weighted information fusion of two covariances that are sums of positive semidefinite
+terms: ``K_a = (1 - omega) P Ya^-1``, ``K_b = omega P Yb^-1``. For *any* gains with
+``Ka + Kb = I`` and ``t = omega / (1 - omega)``,
+
+    B = Ka Pa Ka^T + Kb Pb Kb^T + t Ka Pa Pb^-1 Pa Ka^T + Kb Pb Pa^-1 Pb Kb^T / t
+      = Ka Ya Ka^T / (1 - omega) + Kb Yb Kb^T / omega
+
+bounds the error covariance under the common-information model (every cross-covariance
+``Pab = Pa C Pb`` with ``0 <= C <= Pa^-1, C <= Pb^-1``), and for the ICI gains ``B`` is
+ICI's ``P``. :func:`cifilter._numerics.information.weighted_fusion` returns exactly this ``B`` of
+the gains it returns, so the returned ``P`` bounds the error of the returned gains
+whatever rounding went into them. The factors of ``Ya`` and ``Yb`` come from QR
+factorisations of their stacked square-root factors, so no condition number is squared.
+
+The criteria ``trace(W P)`` and ``log det P`` are convex in omega (in the basis that
+diagonalises Pa and Pb every eigenvalue of ``P`` is a convex linear-fractional function
+of omega, and so is its logarithm); their derivatives are
+
+    dP/domega = -P Gamma^-1 (Pa - Pb) Gamma^-1 P,
+
+and the minimum is found by the safeguarded Newton iteration of
+:func:`cifilter._numerics.optimize.minimize_convex_interval` and certified by its gap.
+"""
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .._numerics.criteria import GAP_TOL, criterion_of_factor
+from .._numerics.information import (
+    DIAGONAL_TRUST,
+    checked_cholesky,
+    diagonal_spread_squared,
+    information_factors,
+    lower_inverse_stack,
+    squared_norms,
+    weighted_fusion,
+)
+from .._numerics.optimize import interval_gap, minimize_convex_interval, minimize_convex_scalar
+
+__all__ = ["InversePair", "inverse_ci_derivatives", "inverse_ci_fusion", "inverse_ci_pair",
+           "optimal_inverse_omega"]
+
+
+class InversePair(NamedTuple):
+    """Precomputed factors of two-estimate problems (batch flattened to one axis)."""
+
+    x: np.ndarray  # (size, 2, n)
+    La: np.ndarray  # (size, n, n) Cholesky factor of Pa
+    Lb: np.ndarray  # (size, n, n) Cholesky factor of Pb
+    Fa: np.ndarray  # (size, n, n) Pa Lb^-T: Pa Pb^-1 Pa = Fa Fa^T
+    Fb: np.ndarray  # (size, n, n) Pb La^-T: Pb Pa^-1 Pb = Fb Fb^T
+    Pa: np.ndarray  # (size, n, n)
+    Pb: np.ndarray  # (size, n, n)
+
+
+def inverse_ci_pair(x, P, L):
+    """The factors of :class:`InversePair` for estimates ``x`` (..., 2, n), ``P``, ``L``."""
+    n = x.shape[-1]
+    x = x.reshape((-1, 2, n))
+    P = P.reshape((-1, 2, n, n))
+    L = L.reshape((-1, 2, n, n))
+    L_inv = lower_inverse_stack(L)
+    Pa, Pb = P[:, 0], P[:, 1]
+    Fa = Pa @ L_inv[:, 1].swapaxes(-1, -2)
+    Fb = Pb @ L_inv[:, 0].swapaxes(-1, -2)
+    return InversePair(x, L[:, 0], L[:, 1], Fa, Fb, Pa, Pb)
+
+
+def _stacked_factor(A, B, a, b):
+    """Lower factor ``L`` (size, n, n) with ``L L^T = a A A^T + b B B^T`` by a QR of the
+    stacked square roots ``[sqrt(a) A, sqrt(b) B]^T`` (nothing is squared)."""
+    stacked = np.concatenate([np.sqrt(a)[:, None, None] * A, np.sqrt(b)[:, None, None] * B],
+                             axis=-1)
+    R = np.linalg.qr(stacked.swapaxes(-1, -2), mode="r")  # (size, n, n) upper, R^T R = S S^T
+    # A positive diagonal (the Cholesky factor's sign convention) and a lower factor
+    signs = np.where(np.diagonal(R, axis1=-2, axis2=-1) < 0.0, -1.0, 1.0)
+    return (R * signs[..., :, None]).swapaxes(-1, -2)
+
+
+def _inflated_factors(pair, omega):
+    """Factors ``(L_Ya, L_Yb)`` of the inflated covariances at ``omega`` (size,)."""
+    one = 1.0 - omega
+    L_Ya = _stacked_factor(pair.La, pair.Fa, one, omega)
+    L_Yb = _stacked_factor(pair.Lb, pair.Fb, omega, one)
+    return np.stack([L_Ya, L_Yb], axis=1)
+
+
+def _information_at(pair, omega, failures="raise"):
+    L_Y = _inflated_factors(pair, omega)
+    L_Y_inv = lower_inverse_stack(L_Y)
+    weights = np.stack([1.0 - omega, omega], axis=-1)
+    factors = information_factors(L_Y_inv, weights, failures=failures)
+    return L_Y, L_Y_inv, weights, factors
+
+
+def inverse_ci_fusion(pair, omega):
+    """ICI at ``omega`` (size,): ``(x, P, gains)``, ``P`` the bound of the gains.
+
+    Raises IllConditionedError where the fused information is numerically singular.
+    """
+    L_Y, L_Y_inv, weights, factors = _information_at(pair, omega)
+    if len(omega) == 1:  # one problem: the single-problem path of the same assembly
+        fused = weighted_fusion(pair.x[0], L_Y[0], weights[0], L_Y_inv[0],
+                                type(factors)(*(f[0] for f in factors)))
+        return fused.x[None], fused.P[None], fused.gains[None]
+    fused = weighted_fusion(pair.x, L_Y, weights, L_Y_inv, factors)
+    return fused.x, fused.P, fused.gains
+
+
+def inverse_ci_derivatives(pair, omega, kind, W):
+    """``(f, f', f'')`` of ``f = trace(W P)`` or ``log det P`` at ``omega`` (size,).
+
+    With ``P = Lp Lp^T``, ``Gamma = G G^T``, ``Z = G^-1 Lp``, ``A_a = G^-1 La``,
+    ``S_a = A_a^T Z`` (and likewise for b), ``N = Lp^T Gamma^-1 (Pa - Pb) Gamma^-1 Lp =
+    S_a^T S_a - S_b^T S_b`` and ``E = A_a A_a^T - A_b A_b^T``:
+
+    * ``trace(W P)``: ``f' = -trace(W Lp N Lp^T)``,
+      ``f'' = 2 trace(W Lp (N N + Z^T E E Z) Lp^T)``;
+    * ``log det P``: ``f' = -trace(N)``, ``f'' = ||N||^2 + 2 ||E Z||^2``.
+
+    The slopes are differences of two nonnegative terms (no other cancellation). Problems
+    whose fused information is numerically singular get NaN.
+    """
+    _, _, _, factors = _information_at(pair, omega, failures="nan")
+    Lp = factors.R_inv.swapaxes(-1, -2)  # P = R_inv^T R_inv = Lp Lp^T
+    gamma = omega[:, None, None] * pair.Pa + (1.0 - omega)[:, None, None] * pair.Pb
+    G = checked_cholesky(gamma, "Gamma = omega Pa + (1 - omega) Pb", failures="nan")
+    G_inv = lower_inverse_stack(G)
+    Z = G_inv @ Lp
+    Aa, Ab = G_inv @ pair.La, G_inv @ pair.Lb
+    Sa, Sb = Aa.swapaxes(-1, -2) @ Z, Ab.swapaxes(-1, -2) @ Z
+    N = Sa.swapaxes(-1, -2) @ Sa - Sb.swapaxes(-1, -2) @ Sb
+    E = Aa @ Aa.swapaxes(-1, -2) - Ab @ Ab.swapaxes(-1, -2)
+    EZ = E @ Z
+    f = criterion_of_factor(factors.R_inv, kind, W)
+    if kind == "det":
+        slope = squared_norms(Sb) - squared_norms(Sa)
+        curvature = squared_norms(N) + 2.0 * squared_norms(EZ)
+        return f, slope, curvature
+    LSa, LSb = Lp @ Sa.swapaxes(-1, -2), Lp @ Sb.swapaxes(-1, -2)
+    LN, LZE = Lp @ N, Lp @ EZ.swapaxes(-1, -2)
+    if kind == "trace":
+        slope = squared_norms(LSb) - squared_norms(LSa)
+        curvature = 2.0 * (squared_norms(LN) + squared_norms(LZE))
+        return f, slope, curvature
+
+    def weighted(M):
+        return np.einsum("...ij,...ik,...jk->...", W, M, M)
+
+    slope = weighted(LSb) - weighted(LSa)
+    curvature = 2.0 * (weighted(LN) + weighted(LZE))
+    return f, slope, curvature
+
+
+def _diagonalised(pair, kind, W):
+    """Proposal, iterations, gap and trust of the diagonalised problem (size,).
+
+    With ``Pa = La La^T`` and ``La^-1 Pb La^-T = U diag(lam) U^T``, ``T = La U``
+    diagonalises both covariances and ``P(omega) = T diag(d) T^T`` with
+    ``d = lam g / D``, ``g = omega + (1 - omega) lam``, ``D = omega + (1 - omega) lam^2``:
+
+    * ``trace(W P) = sum_k c_k d_k`` (``c = diag(T^T W T)``), ``d' = -lam^2 (1 - lam) / D^2``,
+      ``d'' = 2 lam^2 (1 - lam)^2 (1 + lam) / D^3``;
+    * ``log det P = log det Pa + sum_k log d_k``, ``(log d)' = (1 - lam) / g -
+      (1 - lam^2) / D``, ``(log d)'' = (1 - lam^2)^2 / D^2 - (1 - lam)^2 / g^2``.
+
+    O(n) per Newton iteration. As for CI, the eigenvalues are accurate only where their
+    spread and the squared diagonal spread of both Cholesky factors are at most
+    ``DIAGONAL_TRUST``; elsewhere the problem is not ``trusted``.
+    """
+    size, n = pair.x.shape[0], pair.x.shape[-1]
+    La_inv = lower_inverse_stack(pair.La)
+    S = La_inv @ pair.Pb @ La_inv.swapaxes(-1, -2)
+    lam, U = np.linalg.eigh(0.5 * (S + S.swapaxes(-1, -2)))
+    usable = np.all(lam > 0.0, axis=-1) & np.all(np.isfinite(lam), axis=-1)
+    lam = np.where(usable[:, None], lam, 1.0)
+    one = 1.0 - lam
+    if kind == "det":
+        def derivatives(omega, index):
+            w, lk, ok = omega[:, None], lam[index], one[index]
+            g, D = w + (1.0 - w) * lk, w + (1.0 - w) * lk * lk
+            a, b = ok / g, ok * (1.0 + lk) / D
+            return (a - b).sum(axis=-1), (b * b - a * a).sum(axis=-1)
+
+        def value(omega):
+            w = omega[:, None]
+            return np.log(lam * (w + (1.0 - w) * lam) / (w + (1.0 - w) * lam * lam)).sum(-1)
+
+        scale = np.full(size, float(n))
+    else:
+        T = pair.La @ U
+        if kind == "trace":
+            c = np.square(T).sum(axis=-2)
+        else:
+            c = np.einsum("...ik,...ij,...jk->...k", T, W, T)
+
+        def derivatives(omega, index):
+            w, lk, ok, ck = omega[:, None], lam[index], one[index], c[index]
+            D = w + (1.0 - w) * lk * lk
+            first = -(ck * lk * lk * ok / (D * D)).sum(axis=-1)
+            second = (2.0 * ck * lk * lk * ok * ok * (1.0 + lk) / D**3).sum(axis=-1)
+            return first, second
+
+        def value(omega):
+            w = omega[:, None]
+            return (c * lam * (w + (1.0 - w) * lam) / (w + (1.0 - w) * lam * lam)).sum(-1)
+
+        scale = (c * (1.0 + lam)).sum(axis=-1)
+    with np.errstate(all="ignore"):
+        if size == 1:  # one problem: the same iteration in Python floats
+            only = np.zeros(1, dtype=int)
+
+            def derivative(w):
+                first, second = derivatives(np.array([w]), only)
+                return float(first[0]), float(second[0])
+
+            w, count, _ = minimize_convex_scalar(derivative, scale=float(scale[0]))
+            omega, iterations = np.array([w]), np.array([count])
+        else:
+            omega, iterations, _ = minimize_convex_interval(derivatives, size, scale=scale)
+        slope, _ = derivatives(omega, np.arange(size))
+        gap = interval_gap(omega, slope)
+        if kind != "det":
+            gap = gap / value(omega)
+        spread = lam.max(axis=-1) / lam.min(axis=-1)
+    conditioning = np.maximum(diagonal_spread_squared(pair.La), diagonal_spread_squared(pair.Lb))
+    trusted = (usable & (spread <= DIAGONAL_TRUST) & (conditioning <= DIAGONAL_TRUST)
+               & np.isfinite(gap) & np.isfinite(omega))
+    return omega, iterations, np.where(trusted, gap, np.inf), trusted
+
+
+def optimal_inverse_omega(pair, kind, W):
+    """Criterion-optimal omega per problem, certified.
+
+    Problems whose simultaneous diagonalisation is trusted are solved and certified in
+    the diagonal form (:func:`_diagonalised`); the others by the safeguarded Newton
+    iteration on the derivatives of :func:`inverse_ci_derivatives`, from Cholesky and QR
+    factors. Returns ``omega, iterations, gap`` (size,): ``gap`` is the certified bound of
+    the excess of the criterion over its minimum on [0, 1] (relative for the trace
+    criteria, in log det for the determinant), infinite where it could not be evaluated.
+    """
+    size, n = pair.x.shape[0], pair.x.shape[-1]
+    Wf = None if W is None else np.broadcast_to(W, (size, n, n))
+    omega, iterations, gap, trusted = _diagonalised(pair, kind, Wf)
+    rest = np.flatnonzero(~trusted)
+    if rest.size:
+        sub = InversePair(*(array[rest] for array in pair))
+        sub_omega, sub_iterations, sub_gap = _robust_omega(
+            sub, kind, None if Wf is None else Wf[rest])
+        omega[rest], iterations[rest], gap[rest] = sub_omega, sub_iterations, sub_gap
+    return omega, iterations, gap
+
+
+def _robust_omega(pair, kind, W):
+    """:func:`optimal_inverse_omega` from Cholesky and QR factors (any conditioning)."""
+    size, n = pair.x.shape[0], pair.x.shape[-1]
+    Wf = W
+
+    def subset(index):
+        return InversePair(*(array[index] for array in pair))
+
+    def derivatives(omega, index):
+        _, slope, curvature = inverse_ci_derivatives(
+            subset(index), omega, kind, None if Wf is None else Wf[index])
+        # A numerically singular fused information: bisection decides (as for CI)
+        bad = ~np.isfinite(slope)
+        slope = np.where(bad, np.where(omega >= 0.5, np.inf, -np.inf), slope)
+        return slope, np.where(bad | ~np.isfinite(curvature), np.inf, curvature)
+
+    if kind == "det":
+        scale = np.full(size, float(n))
+    else:
+        Wr = np.eye(n) if Wf is None else Wf
+        scale = (np.einsum("...ij,...ji->...", Wr, pair.Pa)
+                 + np.einsum("...ij,...ji->...", Wr, pair.Pb))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        omega, iterations, _ = minimize_convex_interval(derivatives, size, scale=scale)
+        f, slope, _ = inverse_ci_derivatives(pair, omega, kind, Wf)
+        gap = interval_gap(omega, slope)
+        if kind != "det":
+            gap = gap / f
+    gap = np.where(np.isfinite(gap), gap, np.inf)
+    return omega, iterations, gap
+
+
+CERTIFIED = GAP_TOL
+"""Gap at or below which an optimal omega is reported as converged."""

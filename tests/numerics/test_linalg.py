@@ -1,0 +1,97 @@
+"""Internal batched linear algebra (cifilter._numerics.linalg); input checking is in
+test_validation."""
+
+import numpy as np
+import pytest
+
+from cifilter._numerics.linalg import (
+    IllConditionedError,
+    cho_inverse,
+    cho_solve,
+    cholesky,
+    logdet_from_cholesky,
+    lower_inverse,
+    mahalanobis_sq,
+    solve_lower,
+)
+
+rng = np.random.default_rng(7)
+
+
+def spd(size, n):
+    A = rng.standard_normal(size + (n, n))
+    return A @ np.swapaxes(A, -1, -2) + 0.5 * np.eye(n)
+
+
+@pytest.mark.parametrize("size", [(), (1,), (5,), (3, 4)])
+@pytest.mark.parametrize("n", [1, 2, 5])
+def test_triangular_and_cholesky_solves_match_lapack(size, n):
+    P = spd(size, n)
+    L = cholesky(P)
+    B = rng.standard_normal(size + (n, 3))
+    np.testing.assert_allclose(solve_lower(L, B), np.linalg.solve(L, B), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(lower_inverse(L), np.linalg.inv(L), rtol=1e-10, atol=1e-12)
+    inverse = cho_inverse(L)
+    np.testing.assert_array_equal(inverse, np.swapaxes(inverse, -1, -2))
+    np.testing.assert_allclose(inverse, np.linalg.inv(P), rtol=1e-8, atol=1e-10)
+    b = rng.standard_normal(size + (n,))
+    np.testing.assert_allclose(cho_solve(L, b), np.linalg.solve(P, b[..., None])[..., 0],
+                               rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(logdet_from_cholesky(L), np.linalg.slogdet(P)[1], rtol=1e-10)
+
+
+def test_mahalanobis_broadcasts_and_matches_the_definition():
+    P = spd((), 3)
+    e = rng.standard_normal((6, 3))
+    expected = np.einsum("ki,ij,kj->k", e, np.linalg.inv(P), e)
+    np.testing.assert_allclose(mahalanobis_sq(e, P), expected, rtol=1e-10)
+
+
+def test_cholesky_names_the_argument_and_index():
+    P = np.stack([np.eye(2), np.diag([1.0, -2.0])])
+    with pytest.raises(ValueError, match=r"P\[1\] is not positive definite.*-2"):
+        cholesky(P, "P")
+    with pytest.raises(ValueError, match="not positive definite"):
+        cholesky(np.diag([np.nan, 1.0]), "P")
+
+
+def rotated(eigenvalues, angle=0.3):
+    c, s = np.cos(angle), np.sin(angle)
+    Q = np.array([[c, -s], [s, c]])
+    A = Q @ np.diag(eigenvalues) @ Q.T
+    return 0.5 * (A + A.T)
+
+
+@pytest.mark.parametrize("A", [
+    rotated([1e20, 17.0]),  # PD in exact arithmetic; rounding makes Cholesky fail
+    np.ones((2, 2)),  # PSD, singular
+    np.zeros((2, 2)),
+    np.diag([1.0, -1e-17]),  # indefinite by a rounding-level eigenvalue only
+])
+def test_numerically_singular_matrices_are_ill_conditioned_not_indefinite(A):
+    with pytest.raises(IllConditionedError, match=r"^P is too ill-conditioned for a Cholesky "
+                                                  r"factorisation: condition number"):
+        cholesky(A, "P")
+
+
+def test_the_failing_matrix_of_a_stack_is_named():
+    P = np.stack([np.eye(2), rotated([1e20, 17.0])])
+    with pytest.raises(IllConditionedError, match=r"^P\[1\] "):
+        cholesky(P, "P")
+    assert issubclass(IllConditionedError, ValueError)
+
+
+@pytest.mark.parametrize("A, smallest", [
+    (-np.eye(2), "-1"),
+    (np.array([[1.0, 2.0], [2.0, 1.0]]), "-1"),
+    (rotated([1e20, -1e10]), "-1e\\+10"),
+])
+def test_indefinite_matrices_say_not_positive_definite_with_the_smallest_eigenvalue(A, smallest):
+    with pytest.raises(ValueError, match=rf"^P is not positive definite \(smallest eigenvalue "
+                                         rf"{smallest}"):
+        cholesky(A, "P")
+
+
+def test_cholesky_success_path_is_unchanged_for_well_conditioned_stacks():
+    P = spd((3, 2), 4)
+    np.testing.assert_array_equal(cholesky(P, "P"), np.linalg.cholesky(P))
