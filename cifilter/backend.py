@@ -16,6 +16,8 @@ See ``docs/backend.rst``.
 import contextlib
 import importlib.util
 import threading
+from collections.abc import Iterator
+from typing import Any
 
 __all__ = ["AUTO_MIN_BATCH", "BACKENDS", "get_backend", "numba_available", "set_backend",
            "use_backend"]
@@ -32,7 +34,7 @@ that a filter's ``fuse`` never imports numba or waits for a compile."""
 
 _state = threading.local()
 _default = ["auto"]
-_available = []
+_available: list[bool] = []
 
 
 def _check(name):
@@ -45,7 +47,7 @@ def _check(name):
     return name
 
 
-def numba_available():
+def numba_available() -> bool:
     """Whether numba can be imported (checked once, without importing it).
 
     Returns
@@ -73,7 +75,7 @@ def numba_available():
     return _available[0]
 
 
-def set_backend(name):
+def set_backend(name: str) -> str:
     """Choose the backend of the Covariance Intersection family for this process.
 
     Parameters
@@ -113,7 +115,7 @@ def set_backend(name):
     return previous
 
 
-def get_backend():
+def get_backend() -> str:
     """The backend in effect in this thread.
 
     Returns
@@ -133,7 +135,7 @@ def get_backend():
 
 
 @contextlib.contextmanager
-def use_backend(name):
+def use_backend(name: str) -> Iterator[str]:
     """Use a backend inside a ``with`` block (this thread only), then restore the previous.
 
     Parameters
@@ -172,7 +174,7 @@ def use_backend(name):
         stack.pop()
 
 
-def use_kernels(batch_size, *arrays):
+def use_kernels(batch_size: int, *arrays: Any) -> bool:
     """Whether the current backend sends a problem of ``batch_size`` items to the kernels.
 
     (Private to the package; ``arrays`` must all be float64.)

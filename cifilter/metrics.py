@@ -19,10 +19,13 @@ eigenvalue of ``(P, E[e e^T])`` is at least one; the test gives that eigenvalue 
 confidence interval.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Optional, Union
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
 from ._numerics.linalg import cholesky, mahalanobis_sq, solve_lower
@@ -40,7 +43,7 @@ __all__ = [
 ]
 
 
-def _as_vectors(value, name):
+def _as_vectors(value: ArrayLike, name: str) -> NDArray[np.float64]:
     """``(..., n)`` from ``(..., n)`` or filterpy's column ``(..., n, 1)``."""
     array = as_float_array(value, name)
     if array.ndim >= 2 and array.shape[-1] == 1:
@@ -50,7 +53,7 @@ def _as_vectors(value, name):
     return array
 
 
-def nees(x_true, x_est, P):
+def nees(x_true: ArrayLike, x_est: ArrayLike, P: ArrayLike) -> NDArray[np.float64]:
     """Normalised estimation error squared, ``(x_est - x_true)^T P^-1 (x_est - x_true)``.
 
     The arguments are those of ``filterpy.stats.NEES`` (true states, estimates,
@@ -93,7 +96,7 @@ def nees(x_true, x_est, P):
     return _normalised_square(error, P, "P")
 
 
-def nis(innovation, S):
+def nis(innovation: ArrayLike, S: ArrayLike) -> NDArray[np.float64]:
     """Normalised innovation squared, ``y^T S^-1 y``.
 
     Parameters
@@ -142,7 +145,7 @@ def _normalised_square(error, P, name):
                           np.broadcast_to(P, shape + (n, n)))
 
 
-def chi2_bounds(dim, runs, confidence=0.95):
+def chi2_bounds(dim: int, runs: int, confidence: float = 0.95) -> tuple[float, float]:
     """Two-sided chi-square bounds of an average of ``runs`` NEES (or NIS) values.
 
     If the estimator is consistent, ``runs * ANEES`` is chi-square with ``runs * dim``
@@ -211,7 +214,7 @@ class ANEESResult:
     ('consistent', 1.0)
     """
 
-    value: np.ndarray
+    value: NDArray[np.float64]
     lower: float
     upper: float
     dim: int
@@ -219,7 +222,7 @@ class ANEESResult:
     confidence: float
 
     @property
-    def inside(self):
+    def inside(self) -> NDArray[np.bool_]:
         """Whether each ANEES lies inside the bounds (boolean array like ``value``).
 
         Returns
@@ -237,7 +240,7 @@ class ANEESResult:
         return (self.value >= self.lower) & (self.value <= self.upper)
 
     @property
-    def share_inside(self):
+    def share_inside(self) -> float:
         """Share of the ANEES values inside the bounds (``confidence`` when consistent).
 
         Returns
@@ -255,7 +258,7 @@ class ANEESResult:
         return float(np.mean(self.inside))
 
     @property
-    def mean(self):
+    def mean(self) -> float:
         """The ANEES averaged over its remaining indices as well (e.g. over time).
 
         Returns
@@ -273,7 +276,7 @@ class ANEESResult:
         return float(np.mean(self.value))
 
     @property
-    def verdict(self):
+    def verdict(self) -> str:
         """``"conservative"``, ``"overconfident"`` or ``"consistent"``.
 
         The mean ANEES (:attr:`mean`) below the lower bound is conservative (the
@@ -299,7 +302,8 @@ class ANEESResult:
         return "consistent"
 
 
-def anees(nees_values, dim, *, axis=0, confidence=0.95):
+def anees(nees_values: ArrayLike, dim: int, *, axis: int = 0,
+          confidence: float = 0.95) -> ANEESResult:
     """Average NEES over Monte Carlo runs, with two-sided chi-square bounds.
 
     Parameters
@@ -354,7 +358,9 @@ def anees(nees_values, dim, *, axis=0, confidence=0.95):
                        float(confidence))
 
 
-def rmse(x_true, x_est, *, axis=0, components=None):
+def rmse(x_true: ArrayLike, x_est: ArrayLike, *,
+         axis: Optional[Union[int, tuple[int, ...]]] = 0,
+         components: Optional[Sequence[int]] = None) -> Union[NDArray[np.float64], float]:
     """Root mean square error over Monte Carlo runs.
 
     ``sqrt(mean_runs(sum_components (x_est - x_true)^2))``: the root of the mean squared
@@ -429,14 +435,14 @@ class ConservativenessResult:
     'conservative'
     """
 
-    eigenvalue: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
+    eigenvalue: Union[NDArray[np.float64], float]
+    lower: Union[NDArray[np.float64], float]
+    upper: Union[NDArray[np.float64], float]
     samples: int
     confidence: float
 
     @property
-    def verdict(self):
+    def verdict(self) -> Union[str, NDArray[np.str_]]:
         """``"conservative"`` (the whole interval >= 1), ``"overconfident"`` (<= 1) or
         ``"inconclusive"``; an array of str for a batch.
 
@@ -480,7 +486,9 @@ def _white_wishart_extremes(dim, samples, confidence, draws, seed):
             float(np.quantile(np.concatenate(largest), 1.0 - tail)))
 
 
-def conservativeness(P, errors, *, axis=0, confidence=0.95, draws=4000, rng=0):
+def conservativeness(P: ArrayLike, errors: ArrayLike, *, axis: int = 0,
+                     confidence: float = 0.95, draws: int = 4000,
+                     rng: Optional[int] = 0) -> ConservativenessResult:
     """Test whether ``P`` bounds the empirical error covariance: smallest generalised
     eigenvalue with a confidence interval.
 
@@ -533,14 +541,14 @@ def conservativeness(P, errors, *, axis=0, confidence=0.95, draws=4000, rng=0):
     >>> bool(result.lower < 1 < result.upper), result.verdict
     (True, 'inconclusive')
     """
-    P = as_float_array(P, "P")
+    covariance = as_float_array(P, "P")
     errors = _as_vectors(errors, "errors")
     if not np.all(np.isfinite(errors)):
         raise ValueError("errors must be finite")
     n = errors.shape[-1]
-    if P.ndim < 2 or P.shape[-2:] != (n, n):
+    if covariance.ndim < 2 or covariance.shape[-2:] != (n, n):
         raise ValueError(f"P must have shape (..., {n}, {n}) to match errors of length {n}, "
-                         f"got {P.shape}")
+                         f"got {covariance.shape}")
     errors = np.moveaxis(errors, axis, 0)
     samples = errors.shape[0]
     if samples < n:
@@ -550,7 +558,7 @@ def conservativeness(P, errors, *, axis=0, confidence=0.95, draws=4000, rng=0):
                               high_open=True)
     draws = check_int(draws, "draws", low=100)
     second_moment = np.einsum("k...i,k...j->...ij", errors, errors) / samples
-    L = cholesky(P, "P")
+    L = cholesky(covariance, "P")
     shape = np.broadcast_shapes(L.shape[:-2], second_moment.shape[:-2])
     L = np.broadcast_to(L, shape + (n, n))
     # lambda_min(P, C) = 1 / lambda_max(L^-1 C L^-T): no inverse of C (it may be singular)
@@ -564,4 +572,5 @@ def conservativeness(P, errors, *, axis=0, confidence=0.95, draws=4000, rng=0):
     result = [eigenvalue, eigenvalue * low, eigenvalue * high]
     if eigenvalue.ndim == 0:
         result = [float(r) for r in result]
-    return ConservativenessResult(*result, int(samples), float(confidence))
+    return ConservativenessResult(result[0], result[1], result[2], int(samples),
+                                  float(confidence))

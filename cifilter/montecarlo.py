@@ -16,11 +16,16 @@ is asked for.
 import contextlib
 import math
 import numbers
-from typing import NamedTuple
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple, Optional, Union
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ._progress import ProgressBar
+
+if TYPE_CHECKING:  # Dask is optional, imported only when a cluster is asked for
+    from distributed import Client
 
 __all__ = ["DEFAULT_CHUNK_SIZE", "ChunkFailure", "MonteCarloError", "dask_client", "run"]
 
@@ -76,7 +81,9 @@ class ChunkFailure(NamedTuple):
     (2,)
     """
 
-    index: int
+    # The public name shadows tuple.index (a method), which mypy reports; renaming the field
+    # would break the API (failure.index, ChunkFailure(index=...)).
+    index: int  # type: ignore[assignment]
     start: int
     runs: int
     seed_sequence: np.random.SeedSequence
@@ -129,7 +136,9 @@ class MonteCarloError(RuntimeError):
     2 (20,) 19
     """
 
-    def __init__(self, failed, completed, n_chunks, chunk_size, entropy):
+    def __init__(self, failed: Sequence[ChunkFailure],
+                 completed: Mapping[int, Mapping[str, np.ndarray]], n_chunks: int,
+                 chunk_size: int, entropy: Union[int, Sequence[int]]) -> None:
         self.failed = sorted(failed, key=lambda failure: failure.index)
         self.completed = dict(sorted(completed.items()))
         self.n_chunks = n_chunks
@@ -222,7 +231,10 @@ def _concatenate(results):
     return {key: np.concatenate([result[key] for result in results], axis=0) for key in keys}
 
 
-def run(study, runs, *, chunk_size=None, client=None, seed=None, progress=None):
+def run(study: Callable[[np.random.Generator, int], dict[str, Any]], runs: int, *,
+        chunk_size: Optional[int] = None, client: Optional[Union["Client", str]] = None,
+        seed: Optional[Union[int, np.random.SeedSequence, np.random.Generator]] = None,
+        progress: Optional[bool] = None) -> dict[str, NDArray[Any]]:
     """Run a vectorised Monte Carlo study in seeded chunks, here or on Dask.
 
     Chunk ``k`` (runs ``k * chunk_size`` onwards) is simulated by
@@ -390,7 +402,8 @@ def _future_error(future):
 
 
 @contextlib.contextmanager
-def dask_client(workers=None, scheduler=None):
+def dask_client(workers: Optional[int] = None,
+                scheduler: Optional[str] = None) -> Iterator[Optional["Client"]]:
     """The Dask client for ``--workers N`` or ``--scheduler ADDRESS``, or None for neither.
 
     ``workers`` starts a :class:`distributed.LocalCluster` of that many worker processes

@@ -10,15 +10,20 @@ rules are registered, in an explicit order, by :mod:`cifilter.rules`.
 
 import dataclasses
 import inspect
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ._numerics.validation import as_estimates, restore_style
 from .result import FusionResult
 
 __all__ = ["FusionMethod", "available_methods", "fuse", "get_method", "register_method"]
+
+# A horizon hook: ``hook(estimates, model, steps, options) -> (core_options, info)``.
+_HorizonHook = Callable[..., tuple[Mapping[str, Any], Mapping[str, Any]]]
 
 
 def _option_signature(function, skip):
@@ -91,15 +96,16 @@ class FusionMethod:
     """
 
     name: str
-    function: Callable
+    function: Callable[..., FusionResult]
     summary: str = ""
     reference: str = ""
     guarantee: str = "none"
-    truth_options: Optional[Callable] = None
-    core: Optional[Callable] = None
-    horizon: Optional[Callable] = None
+    truth_options: Optional[Callable[..., Mapping[str, Any]]] = None
+    core: Optional[Callable[..., FusionResult]] = None
+    horizon: Optional[_HorizonHook] = None
     weights: str = ""
-    signature: Optional[tuple] = field(default=None, repr=False, compare=False)
+    signature: Optional[tuple[tuple[str, ...], tuple[str, ...], bool]] = field(
+        default=None, repr=False, compare=False)
     truth_takes_count: bool = field(default=False, init=False, repr=False, compare=False)
 
     def __post_init__(self):
@@ -113,7 +119,8 @@ class FusionMethod:
                        and "count" in inspect.signature(self.truth_options).parameters)
         object.__setattr__(self, "truth_takes_count", takes_count)
 
-    def options_given_truth(self, joint, rng, count=2):
+    def options_given_truth(self, joint: ArrayLike, rng: Optional[np.random.Generator],
+                            count: int = 2) -> dict[str, Any]:
         """Options for this rule in a simulation where the joint covariance is known.
 
         Parameters
@@ -145,11 +152,15 @@ class FusionMethod:
 
 
 GUARANTEES = ("bound", "exact", "none")
-_REGISTRY = {}
+_REGISTRY: dict[str, FusionMethod] = {}
 
 
-def register_method(name, function, *, summary="", reference="", guarantee="none",
-                    truth_options=None, core=None, horizon=None, weights="", replace=False):
+def register_method(name: str, function: Callable[..., FusionResult], *, summary: str = "",
+                    reference: str = "", guarantee: str = "none",
+                    truth_options: Optional[Callable[..., Mapping[str, Any]]] = None,
+                    core: Optional[Callable[..., FusionResult]] = None,
+                    horizon: Optional[_HorizonHook] = None, weights: str = "",
+                    replace: bool = False) -> FusionMethod:
     """Register a fusion rule so that ``fuse(..., method=name)`` can use it.
 
     Parameters
@@ -227,7 +238,7 @@ def register_method(name, function, *, summary="", reference="", guarantee="none
     return record
 
 
-def attach_horizon(name, hook):
+def attach_horizon(name: str, hook: _HorizonHook) -> FusionMethod:
     """Give a registered rule its horizon hook (see :class:`FusionMethod`).
 
     The rules sit below :mod:`cifilter.horizon`, so their records cannot name the hook that
@@ -269,7 +280,7 @@ def attach_horizon(name, hook):
     return _REGISTRY[name]
 
 
-def available_methods():
+def available_methods() -> tuple[str, ...]:
     """Names of the registered fusion rules, in registration order.
 
     Returns
@@ -286,7 +297,7 @@ def available_methods():
     return tuple(_REGISTRY)
 
 
-def get_method(name):
+def get_method(name: str) -> FusionMethod:
     """The registration record of a fusion rule.
 
     Parameters
@@ -347,7 +358,8 @@ def _check_options(record, options):
         )
 
 
-def split_estimate(item, index, labels=None):
+def split_estimate(item: Any, index: int, labels: Optional[Sequence[str]] = None
+                   ) -> tuple[ArrayLike, ArrayLike]:
     """``(x, P)`` of one estimate: an ``(x, P)`` pair or an object with ``.x`` and ``.P``."""
     if hasattr(item, "x") and hasattr(item, "P"):
         return item.x, item.P
@@ -360,7 +372,8 @@ def split_estimate(item, index, labels=None):
     )
 
 
-def fuse(estimates, method="ci", *, horizon=None, model=None, **options):
+def fuse(estimates: Sequence[Any], method: str = "ci", *, horizon: Optional[int] = None,
+         model: Any = None, **options: Any) -> FusionResult:
     """Fuse estimates with a registered rule.
 
     Parameters
@@ -431,7 +444,9 @@ def fuse(estimates, method="ci", *, horizon=None, model=None, **options):
     return fuse_estimates(estimates, method, options, horizon=horizon, model=model)
 
 
-def fuse_estimates(estimates, method, options, *, horizon=None, model=None, labels=None):
+def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, Any], *,
+                   horizon: Optional[int] = None, model: Any = None,
+                   labels: Optional[Sequence[str]] = None) -> FusionResult:
     """:func:`fuse` with the options as a mapping and optional labels for the messages.
 
     With ``labels`` (one string per estimate, e.g. ``("this filter", "other")``) messages

@@ -6,6 +6,7 @@ from types import MappingProxyType
 from typing import Any, Optional
 
 import numpy as np
+from numpy.typing import NDArray
 
 __all__ = ["FusionResult"]
 
@@ -138,13 +139,13 @@ class FusionResult:
     False
     """
 
-    x: np.ndarray
-    P: np.ndarray
+    x: NDArray[np.float64]
+    P: NDArray[np.float64]
     method: str
-    omega: Optional[np.ndarray] = None
-    gains: Optional[np.ndarray] = None
+    omega: Optional[NDArray[np.float64]] = None
+    gains: Optional[NDArray[np.float64]] = None
     info: Mapping[str, Any] = field(default_factory=dict)
-    weights: Optional[np.ndarray] = None
+    weights: Optional[NDArray[np.float64]] = None
 
     def __post_init__(self):
         set_field = object.__setattr__
@@ -167,7 +168,7 @@ class FusionResult:
         return (FusionResult, (self.x, self.P, self.method, self.omega, self.gains,
                                _thawed_info(self.info), self.weights))
 
-    def replace(self, **changes):
+    def replace(self, **changes: Any) -> "FusionResult":
         """Return a copy with some fields replaced (like ``dataclasses.replace``).
 
         Parameters
@@ -189,7 +190,7 @@ class FusionResult:
         >>> r.replace(method="renamed").method
         'renamed'
         """
-        fields = dict(
+        fields: dict[str, Any] = dict(
             x=self.x, P=self.P, method=self.method, omega=self.omega, gains=self.gains,
             info=self.info, weights=self.weights,
         )

@@ -17,10 +17,14 @@ Stone Soup is an optional dependency (``pip install cifilter[stonesoup]``): ``im
 cifilter`` never imports it; this module does.
 """
 
+import datetime
 import warnings
+from collections.abc import Sequence
 from functools import lru_cache
+from typing import Any, Optional, Union
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 try:
     from stonesoup.base import Property
@@ -121,7 +125,7 @@ def _mixture_moments(mixture):
     return mean, covar
 
 
-def to_estimate(state):
+def to_estimate(state: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The ``(x, P)`` pair of a Stone Soup state, track or Gaussian mixture.
 
     Gaussian states (``GaussianState`` and its subclasses, ``SqrtGaussianState``,
@@ -193,7 +197,8 @@ def _warn_moment_matched(what):
         "covariance, not the density itself", MomentMatchedWarning, stacklevel=3)
 
 
-def to_gaussian_state(x, P=None, timestamp=None):
+def to_gaussian_state(x: Union[ArrayLike, FusionResult], P: Optional[ArrayLike] = None,
+                      timestamp: Optional[datetime.datetime] = None) -> GaussianState:
     """A Stone Soup ``GaussianState`` from ``(x, P)`` or from a :class:`~cifilter.FusionResult`.
 
     Parameters
@@ -233,7 +238,8 @@ def to_gaussian_state(x, P=None, timestamp=None):
     if isinstance(x, FusionResult):
         if P is not None:
             raise ValueError("give either a FusionResult or x and P, not both")
-        x, P = x.x, x.P
+        P = x.P  # first: in `x, P = x.x, x.P` mypy takes x for the array in x.P
+        x = x.x
     if P is None:
         raise ValueError("P is required unless x is a FusionResult")
     P = np.array(P, dtype=float)
@@ -395,7 +401,7 @@ class FusionUpdater(Updater):
         default="trace", doc="What the optimal weights minimise: 'trace', 'det' or a matrix.")
     options: dict = Property(default=None, doc="Further options of the fusion rule.")
 
-    def __init__(self, *args, **kwargs):
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.omega is not None:
             omega = float(self.omega)
@@ -416,8 +422,10 @@ class FusionUpdater(Updater):
                 np.asarray(covar, float))
 
     @lru_cache  # noqa: B019  (as ChernoffUpdater: the hypothesisers call it per pair)
-    def predict_measurement(self, predicted_state, measurement_model=None,
-                            measurement_noise=True, **kwargs):
+    def predict_measurement(self, predicted_state: GaussianState,
+                            measurement_model: Optional[MeasurementModel] = None,
+                            measurement_noise: bool = True,
+                            **kwargs: Any) -> MeasurementPrediction:
         r"""The measurement prediction of a state, with the fusion's innovation covariance.
 
         Parameters
@@ -481,7 +489,7 @@ class FusionUpdater(Updater):
             V = A / (1 - w) + B / w
         return (V + V.T) / 2
 
-    def fuse_hypothesis(self, hypothesis):
+    def fuse_hypothesis(self, hypothesis: Any) -> FusionResult:
         """The cifilter fusion of a hypothesis' detection (first) and prediction (second).
 
         Parameters
@@ -531,7 +539,8 @@ class FusionUpdater(Updater):
             options["omega"] = float(options["omega"])
         return fuse([(a, A), (b, B)], method=name, **options)
 
-    def update(self, hypothesis, force_symmetric_covariance=False, **kwargs):
+    def update(self, hypothesis: Any, force_symmetric_covariance: bool = False,
+               **kwargs: Any) -> Update:
         """The fused posterior of a hypothesis.
 
         Parameters
@@ -659,12 +668,13 @@ class OptimalCovarianceIntersection(MixtureReducer):
         default="trace", doc="What the optimal weights minimise: 'trace', 'det' or a matrix.")
     options: dict = Property(default=None, doc="Further options of the fusion rule.")
 
-    def __init__(self, *args, **kwargs):
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         _check_rule(self.method, self.criterion, None, self.options)
 
     @_ClassOrInstanceMethod
-    def merge_result(self, *components, weights=None):
+    def merge_result(self, *components: Any,
+                     weights: Optional[ArrayLike] = None) -> FusionResult:
         """The :class:`~cifilter.FusionResult` of merging the components (class or instance).
 
         Parameters
@@ -716,7 +726,8 @@ class OptimalCovarianceIntersection(MixtureReducer):
         return fuse(estimates, method=name, **options)
 
     @_ClassOrInstanceMethod
-    def merge_components(self, *components, weights=None):
+    def merge_components(self, *components: Any,
+                         weights: Optional[ArrayLike] = None) -> GaussianState:
         """Merge Gaussian states by Covariance Intersection (or the chosen rule).
 
         Called on the class it uses the default properties (optimal trace weights), as
@@ -760,8 +771,10 @@ class OptimalCovarianceIntersection(MixtureReducer):
 
 
 # ---------------------------------------------------------------------------- track fusion
-def fuse_tracks(tracks, method="ci", timestamp=None, transition_model=None, *,
-                return_result=False, **options):
+def fuse_tracks(tracks: Sequence[Any], method: str = "ci",
+                timestamp: Optional[datetime.datetime] = None, transition_model: Any = None, *,
+                return_result: bool = False,
+                **options: Any) -> Union[GaussianState, tuple[GaussianState, FusionResult]]:
     """Fuse the latest states of tracks, predicted to a common time.
 
     Each track's latest state is converted by :func:`to_estimate` (particle and mixture

@@ -295,21 +295,3 @@ def test_fuse_horizon_errors_are_named(kwargs, error, message):
         kwargs["model"] = _model()
     with pytest.raises(error, match=message):
         fuse(_pair(), **kwargs)
-
-
-def test_no_module_imports_another_modules_underscore_names():
-    """Shared helpers live in named private modules under public names."""
-    import ast
-    import pathlib
-
-    root = pathlib.Path(cifilter.__file__).parent
-    offences = []
-    for path in root.rglob("*.py"):
-        tree = ast.parse(path.read_text())
-        for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and node.module is not None and (
-                    node.level > 0 or node.module.startswith("cifilter")):
-                for alias in node.names:
-                    if alias.name.startswith("_"):
-                        offences.append(f"{path.relative_to(root)}: {node.module}.{alias.name}")
-    assert not offences, "\n".join(offences)

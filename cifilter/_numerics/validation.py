@@ -13,9 +13,10 @@ Conventions
 
 import math
 import numbers
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .linalg import cholesky, cholesky_single, symmetrize
 
@@ -53,7 +54,7 @@ class Estimates(NamedTuple):
 _NUMERIC_KINDS = frozenset("iuf")
 
 
-def as_float_array(value, name):
+def as_float_array(value: Any, name: str) -> NDArray[np.float64]:
     """A float copy of ``value`` with a ``TypeError`` naming ``name`` for non-real input.
 
     Parameters
@@ -533,12 +534,14 @@ def check_int(value, name, *, low=None):
     return int(value)
 
 
-def as_rng(rng):
+def as_rng(rng: Any) -> np.random.Generator:
     """A ``numpy.random.Generator`` from a Generator, a seed or None."""
     if isinstance(rng, np.random.Generator):
         return rng
-    if rng is None or isinstance(rng, (numbers.Integral, np.random.SeedSequence)):
+    if rng is None or isinstance(rng, np.random.SeedSequence):
         return np.random.default_rng(rng)
+    if isinstance(rng, numbers.Integral):  # int(): the same seed, in a type numpy declares
+        return np.random.default_rng(int(rng))
     raise TypeError(
         f"rng must be a numpy.random.Generator, an integer seed or None, got {type(rng).__name__}"
     )

@@ -21,7 +21,7 @@ def _converted(text, convert, expected):
         raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
 
 
-def positive_int(text):
+def positive_int(text: str) -> int:
     """An integer >= 1 (``--runs``, ``--steps``, ``--workers``)."""
     value = _converted(text, int, "a positive integer")
     if value < 1:
@@ -29,7 +29,7 @@ def positive_int(text):
     return value
 
 
-def seed(text):
+def seed(text: str) -> int:
     """A non-negative integer (``--seed``; the root of numpy's ``SeedSequence``)."""
     value = _converted(text, int, "a non-negative integer")
     if value < 0:
@@ -37,7 +37,7 @@ def seed(text):
     return value
 
 
-def positive_float(text):
+def positive_float(text: str) -> float:
     """A finite float > 0."""
     value = _converted(text, float, "a positive number")
     if not (math.isfinite(value) and value > 0):
@@ -45,7 +45,7 @@ def positive_float(text):
     return value
 
 
-def probability(text):
+def probability(text: str) -> float:
     """A float in [0, 1] (e.g. a packet loss probability)."""
     value = _converted(text, float, "a number in [0, 1]")
     if not 0.0 <= value <= 1.0:
@@ -53,7 +53,7 @@ def probability(text):
     return value
 
 
-def plot_directory(text):
+def plot_directory(text: str) -> Path:
     """A directory for figures: created if missing, and it must be writable.
 
     Checked when the arguments are parsed, so an unwritable path fails before a long run.
@@ -71,7 +71,7 @@ def plot_directory(text):
     return path
 
 
-def method_list(text):
+def method_list(text: str) -> list[str]:
     """Comma-separated names of registered fusion rules, checked against the registry."""
     from ..registry import available_methods
 
@@ -87,7 +87,8 @@ def method_list(text):
     return names
 
 
-def add_parallel_arguments(parser):
+def add_parallel_arguments(
+        parser: argparse.ArgumentParser) -> argparse._MutuallyExclusiveGroup:
     """``--workers N`` (a local Dask cluster) and ``--scheduler ADDRESS`` (an existing one).
 
     Both absent: the Monte Carlo runs in this process. See :func:`cifilter.montecarlo.run`.

@@ -21,19 +21,26 @@ Rules that need knowledge a real node lacks (``"optimal"``: the true joint covar
 ``truth_options`` hook, so rules registered later appear here without editing this file.
 """
 
+import os
 import sys
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Optional, TextIO, Union
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
 from .. import metrics
 from .._numerics.validation import as_rng, check_int
 from ..filters.kalman import KalmanFilter
-from ..network.graph import constant_velocity_model, get_scenario
+from ..network.graph import Scenario, constant_velocity_model, get_scenario
 from ..network.study import NetworkStudy, summarize
 from ..registry import available_methods, fuse, get_method
+
+if TYPE_CHECKING:  # Dask is optional, imported only when a cluster is asked for
+    from distributed import Client
 
 __all__ = [
     "DEMO_CHUNK_SIZE",
@@ -82,12 +89,12 @@ class DemoData:
     (1, 3, 4)
     """
 
-    truth: np.ndarray
-    x_a: np.ndarray
-    x_b: np.ndarray
-    P_a: np.ndarray
-    P_b: np.ndarray
-    joint: np.ndarray
+    truth: NDArray[np.float64]
+    x_a: NDArray[np.float64]
+    x_b: NDArray[np.float64]
+    P_a: NDArray[np.float64]
+    P_b: NDArray[np.float64]
+    joint: NDArray[np.float64]
 
 
 def _make_filter(F, Q, H, R, x0, P0):
@@ -97,8 +104,10 @@ def _make_filter(F, Q, H, R, x0, P0):
     return kf
 
 
-def simulate(runs=20, steps=100, *, dt=1.0, q=0.5, sigma_a=(10.0, 2.0), sigma_b=(3.0, 8.0),
-             rng=None):
+def simulate(runs: int = 20, steps: int = 100, *, dt: float = 1.0, q: float = 0.5,
+             sigma_a: tuple[float, float] = (10.0, 2.0),
+             sigma_b: tuple[float, float] = (3.0, 8.0),
+             rng: Optional[Union[int, np.random.Generator]] = None) -> DemoData:
     """Simulate the demo scenario.
 
     Parameters
@@ -167,7 +176,7 @@ def simulate(runs=20, steps=100, *, dt=1.0, q=0.5, sigma_a=(10.0, 2.0), sigma_b=
     return DemoData(truth, x_a, x_b, P_a, P_b, joint)
 
 
-def score(x, P, truth):
+def score(x: ArrayLike, P: ArrayLike, truth: ArrayLike) -> dict[str, float]:
     """RMSE, NEES statistics and mean trace of estimates against the truth.
 
     Parameters
@@ -200,7 +209,7 @@ def score(x, P, truth):
     nees = metrics.nees(truth, x, P)
     bound = stats.chi2.ppf(0.95, df=x.shape[-1])
     return {
-        "rmse": metrics.rmse(truth, x, axis=None, components=POSITION),
+        "rmse": float(metrics.rmse(truth, x, axis=None, components=POSITION)),
         "mean_nees": float(np.mean(nees)),
         "inside": float(np.mean(nees <= bound)),
         "mean_trace": float(np.mean(np.trace(P, axis1=-2, axis2=-1))),
@@ -231,7 +240,7 @@ def _fuse_all(data, methods, rng):
     return rows, fused
 
 
-def format_table(rows):
+def format_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """The demo's table as text (one row per estimator).
 
     Parameters
@@ -347,7 +356,10 @@ def _plot_two_tracks(data, fused, directory):
     return [tracks, errors]
 
 
-def run_two_tracks(seed=0, runs=20, steps=100, methods=None, plot=None, out=None):
+def run_two_tracks(seed: int = 0, runs: int = 20, steps: int = 100,
+                   methods: Optional[Sequence[str]] = None,
+                   plot: Optional[Union[str, os.PathLike[str]]] = None,
+                   out: Optional[TextIO] = None) -> list[dict[str, Any]]:
     """The two-track demo: two trackers, their tracks fused by every rule without feedback.
 
     Parameters
@@ -409,7 +421,7 @@ def _directory(plot):
     return directory
 
 
-def format_network_table(rows):
+def format_network_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """The network demo's table as text (one row per estimator, with column headers).
 
     Parameters
@@ -547,9 +559,15 @@ def _plot_network(results, rows, scenario, directory):
     return paths
 
 
-def run_network_demo(seed=0, runs=None, steps=None, methods=None, plot=None, out=None, *,
-                     scenario="naveen-taylor", nodes=None, sequential=True, feedback=True,
-                     period=1, loss=0.0, delay=False, client=None, progress=None):
+def run_network_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[int] = None,
+                     methods: Optional[Sequence[str]] = None,
+                     plot: Optional[Union[str, os.PathLike[str]]] = None,
+                     out: Optional[TextIO] = None, *,
+                     scenario: Union[str, Scenario] = "naveen-taylor",
+                     nodes: Optional[int] = None, sequential: bool = True,
+                     feedback: bool = True, period: int = 1, loss: float = 0.0,
+                     delay: bool = False, client: Optional[Union["Client", str]] = None,
+                     progress: Optional[bool] = None) -> list[dict[str, Any]]:
     """The network demo: every rule in a decentralised network with feedback.
 
     Parameters
@@ -634,8 +652,11 @@ def run_network_demo(seed=0, runs=None, steps=None, methods=None, plot=None, out
     return rows
 
 
-def run_demo(seed=0, runs=None, steps=None, methods=None, plot=None, out=None, *,
-             scenario="two-tracks", **network_options):
+def run_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[int] = None,
+             methods: Optional[Sequence[str]] = None,
+             plot: Optional[Union[str, os.PathLike[str]]] = None,
+             out: Optional[TextIO] = None, *, scenario: Union[str, Scenario] = "two-tracks",
+             **network_options: Any) -> list[dict[str, Any]]:
     """Run a demo: the two tracks (the default of this function) or a network.
 
     ``python -m cifilter demo`` runs the network (:func:`run_network_demo`,

@@ -3,6 +3,8 @@
 import argparse
 import os
 import sys
+from collections.abc import Sequence
+from typing import Optional
 
 from ..registry import available_methods, get_method
 from . import args as types
@@ -129,7 +131,7 @@ def _build_parser():
     return parser
 
 
-def main(argv=None):
+def main(argv: Optional[Sequence[str]] = None) -> int:
     """Run the command line; returns the exit status.
 
     Parameters

@@ -1,14 +1,23 @@
 """Small plotting helpers (matplotlib is imported only when a function draws)."""
 
+from typing import TYPE_CHECKING, Any, Optional
+
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
 from .._numerics.validation import as_float_array, check_covariances, check_scalar
 
+if TYPE_CHECKING:  # matplotlib is optional (cifilter[plot]) and imported lazily
+    from matplotlib.axes import Axes
+    from matplotlib.lines import Line2D
+
 __all__ = ["covariance_ellipse", "plot_covariance_ellipse"]
 
 
-def covariance_ellipse(P, mean=(0.0, 0.0), confidence=0.95, n_points=100):
+def covariance_ellipse(P: ArrayLike, mean: ArrayLike = (0.0, 0.0),
+                       confidence: Optional[float] = 0.95,
+                       n_points: int = 100) -> NDArray[np.float64]:
     """Points on the confidence ellipse of a 2-D Gaussian.
 
     Parameters
@@ -55,8 +64,9 @@ def covariance_ellipse(P, mean=(0.0, 0.0), confidence=0.95, n_points=100):
     return np.asarray(mean, dtype=float).reshape(2, 1) + radius * (L @ circle)
 
 
-def plot_covariance_ellipse(ax, P, mean=(0.0, 0.0), confidence=0.95, *, equal_aspect=True,
-                            **line_kwargs):
+def plot_covariance_ellipse(ax: "Axes", P: ArrayLike, mean: ArrayLike = (0.0, 0.0),
+                            confidence: Optional[float] = 0.95, *, equal_aspect: bool = True,
+                            **line_kwargs: Any) -> "list[Line2D]":
     """Draw a covariance ellipse on a matplotlib axes (with equal aspect by default).
 
     Parameters

@@ -15,6 +15,7 @@ Until ``fuse`` is called a filter gives bit for bit the results of filterpy's cl
 
 import math
 import warnings
+from typing import Any, Optional
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter as _FilterpyEKF
@@ -22,6 +23,7 @@ from filterpy.kalman import KalmanFilter as _FilterpyKF
 from filterpy.kalman import UnscentedKalmanFilter as _FilterpyUKF
 
 from ..registry import fuse_estimates, split_estimate
+from ..result import FusionResult
 
 __all__ = ["ExtendedKalmanFilter", "FusionMixin", "KalmanFilter", "UnscentedKalmanFilter"]
 
@@ -137,9 +139,16 @@ class FusionMixin:
     ...     pass
     """
 
-    last_fusion = None
+    last_fusion: Optional[FusionResult] = None
 
-    def fuse(self, other, method="ci", *, horizon=None, model=None, future=None, **options):
+    # The filter's own attributes (set by the filterpy class the mixin is combined with).
+    x: Any
+    P: Any
+    x_post: Any
+    P_post: Any
+
+    def fuse(self, other: Any, method: str = "ci", *, horizon: Optional[int] = None,
+             model: Any = None, future: Any = None, **options: Any) -> FusionResult:
         """Fuse this filter's estimate with other estimates whose correlation is unknown.
 
         The filter's own ``(x, P)`` is the first input of the fusion rule; its ``x`` (and

@@ -3,11 +3,14 @@ for Split Covariance Intersection (Li, Nashashibi & Yang 2013)."""
 
 import math
 from numbers import Real
+from typing import Any, Optional, Union
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from .._numerics.linalg import positive_definite
 from .._numerics.validation import as_float_array, check_psd
+from ..result import FusionResult
 from ..rules.split_ci import split_covariance_intersection
 from .kalman import KalmanFilter
 
@@ -95,13 +98,14 @@ class SplitCIKalmanFilter(KalmanFilter):
     (True, 'split-ci')
     """
 
-    def __init__(self, dim_x, dim_z, dim_u=0):
+    def __init__(self, dim_x: int, dim_z: int, dim_u: int = 0) -> None:
         super().__init__(dim_x, dim_z, dim_u)
-        self.P_ind = np.zeros((dim_x, dim_x))
-        self.P_dep = np.array(self.P, dtype=float)
-        self._split_of = np.array(self.P, dtype=float)  # the P the split belongs to
+        self.P_ind: NDArray[np.float64] = np.zeros((dim_x, dim_x))
+        self.P_dep: NDArray[np.float64] = np.array(self.P, dtype=float)
+        # the P the split belongs to
+        self._split_of: NDArray[np.float64] = np.array(self.P, dtype=float)
 
-    def set_split(self, P_ind, P_dep):
+    def set_split(self, P_ind: ArrayLike, P_dep: ArrayLike) -> None:
         """Set both parts of the covariance; ``P`` becomes their sum.
 
         Parameters
@@ -132,14 +136,14 @@ class SplitCIKalmanFilter(KalmanFilter):
         [3.0, 3.0]
         """
         n = self.dim_x
-        P_ind = check_psd(P_ind, n, "P_ind")
-        P_dep = check_psd(P_dep, n, "P_dep")
-        if P_ind.shape != (n, n) or P_dep.shape != (n, n):
+        ind = check_psd(P_ind, n, "P_ind")
+        dep = check_psd(P_dep, n, "P_dep")
+        if ind.shape != (n, n) or dep.shape != (n, n):
             raise ValueError(f"P_ind and P_dep must be {n}x{n} matrices")
-        P = P_ind + P_dep
+        P = ind + dep
         if not positive_definite(P):
             raise ValueError("P_ind + P_dep must be positive definite")
-        self._set_parts(P_ind, P_dep)
+        self._set_parts(ind, dep)
 
     def _set_parts(self, P_ind, P_dep):
         P = 0.5 * ((P_ind + P_dep) + (P_ind + P_dep).T)
@@ -153,7 +157,9 @@ class SplitCIKalmanFilter(KalmanFilter):
             P = np.array(self.P, dtype=float)
             self.P_ind, self.P_dep, self._split_of = np.zeros_like(P), P.copy(), P.copy()
 
-    def predict(self, u=None, B=None, F=None, Q=None):
+    def predict(self, u: Optional[ArrayLike] = None, B: Optional[ArrayLike] = None,
+                F: Optional[np.ndarray] = None,
+                Q: Optional[Union[np.ndarray, float]] = None) -> None:
         """Predict as filterpy does, with ``Q`` added to the independent part.
 
         Parameters
@@ -197,7 +203,8 @@ class SplitCIKalmanFilter(KalmanFilter):
         self._set_parts(P_ind, P_dep)
         self.P_prior = self.P.copy()
 
-    def update(self, z, R=None, H=None):
+    def update(self, z: Optional[ArrayLike], R: Optional[Union[np.ndarray, float]] = None,
+               H: Optional[np.ndarray] = None) -> None:
         """Update as filterpy does (Joseph form), with ``R`` added to the independent part.
 
         Parameters
@@ -239,7 +246,9 @@ class SplitCIKalmanFilter(KalmanFilter):
         self._set_parts(P_ind, P_dep)
         self.P_post = self.P.copy()
 
-    def fuse(self, other, method="split-ci", *, criterion=None, H=None, **options):
+    def fuse(self, other: Any, method: str = "split-ci", *,
+             criterion: Optional[Union[str, ArrayLike]] = None, H: Optional[ArrayLike] = None,
+             **options: Any) -> FusionResult:
         """Fuse with other estimates by Split Covariance Intersection (or another rule).
 
         With ``method="split-ci"`` (default) the filter's ``(x, P_ind, P_dep)`` is fused

@@ -9,9 +9,11 @@ approach, for comparison). See ``docs/methods/horizon.rst``.
 
 import inspect
 import numbers
-from typing import NamedTuple
+from collections.abc import Sequence
+from typing import Any, NamedTuple, Optional, Union
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._numerics.information import lower_inverse_stack
 from .._numerics.linalg import IllConditionedError
@@ -29,9 +31,8 @@ from ._model import (
 )
 from ._pci import information_bound, pci_horizon_delta
 
-__all__ = ["Choice", "Problem", "as_rho", "bind_arguments", "choose", "documented_signature",
-           "fused_bound",
-           "problem_of", "solve"]
+__all__ = ["ARGUMENT_TYPES", "Choice", "PerStep", "Problem", "as_rho", "bind_arguments",
+           "choose", "documented_signature", "fused_bound", "problem_of", "solve"]
 
 
 class Problem(NamedTuple):
@@ -230,13 +231,33 @@ def bind_arguments(function, args, kwargs, horizon, keywords):
     return Ps, bound
 
 
-def documented_signature(horizon, keywords):
+# H or R of a model: one matrix (or a number, for R) used at every step, one entry per step
+# (None for a step without a measurement), or None (no measurements).
+PerStep = Optional[Union[ArrayLike, Sequence[Optional[ArrayLike]]]]
+
+# The types of the arguments of the Ps form (those of horizon_weights), for the documented
+# signatures of optimal_omega and horizon_study.
+ARGUMENT_TYPES: dict[str, Any] = {
+    "Ps": Union[ArrayLike, Sequence[ArrayLike]], "F": ArrayLike, "Q": ArrayLike, "H": PerStep,
+    "R": PerStep, "horizon": int, "horizons": Union[int, Sequence[int]],
+    "criterion": Union[str, ArrayLike], "G": Optional[ArrayLike], "rho": Optional[ArrayLike],
+    "limit": bool,
+}
+
+
+def documented_signature(horizon, keywords, returns):
     """The ``Ps`` form's signature, ``(Ps, F, Q, H, R, horizon, criterion, G, *, ...)``,
-    shown by ``help`` and the documentation for the functions of :func:`bind_arguments`."""
+    annotated and returning ``returns``, shown by ``help``, ``inspect.signature`` and the
+    documentation for the functions of :func:`bind_arguments`."""
     P = inspect.Parameter
-    positional = [P(name, P.POSITIONAL_OR_KEYWORD) for name in ("Ps", "F", "Q", "H", "R",
-                                                                 horizon)]
-    positional += [P("criterion", P.POSITIONAL_OR_KEYWORD, default="trace"),
-                   P("G", P.POSITIONAL_OR_KEYWORD, default=None)]
-    return inspect.Signature(positional + [P(name, P.KEYWORD_ONLY, default=default)
-                                           for name, default in keywords.items()])
+
+    def parameter(name, kind, **default):
+        return P(name, kind, annotation=ARGUMENT_TYPES[name], **default)
+
+    positional = [parameter(name, P.POSITIONAL_OR_KEYWORD)
+                  for name in ("Ps", "F", "Q", "H", "R", horizon)]
+    positional += [parameter("criterion", P.POSITIONAL_OR_KEYWORD, default="trace"),
+                   parameter("G", P.POSITIONAL_OR_KEYWORD, default=None)]
+    return inspect.Signature(positional + [parameter(name, P.KEYWORD_ONLY, default=default)
+                                           for name, default in keywords.items()],
+                             return_annotation=returns)

@@ -5,8 +5,11 @@ hooks validate the model and the criterion once and run the core shared with
 :func:`~cifilter.horizon.horizon_weights`. See ``docs/methods/horizon.rst``.
 """
 
+from collections.abc import Mapping
+from typing import Any
+
 from .._numerics.criteria import parse_criterion
-from .._numerics.validation import check_int
+from .._numerics.validation import Estimates, check_int
 from ._core import as_rho, choose, problem_of
 from ._model import as_model, model_parts
 
@@ -42,7 +45,8 @@ def _choose(estimates, model, steps, options, fixed, accepted, rho):
     return choice.weights, criterion, diagnostics
 
 
-def ci_horizon_options(estimates, model, steps, options):
+def ci_horizon_options(estimates: Estimates, model: Any, steps: int,
+                       options: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """The ``"ci"`` rule's support of ``fuse(..., horizon=steps, model=model)``.
 
     Parameters
@@ -89,7 +93,8 @@ def ci_horizon_options(estimates, model, steps, options):
     return {"criterion": criterion, "omega": omega}, diagnostics
 
 
-def pci_horizon_options(estimates, model, steps, options):
+def pci_horizon_options(estimates: Estimates, model: Any, steps: int,
+                        options: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     """The ``"pci"`` rule's support of ``fuse(..., horizon=steps, model=model)``.
 
     Parameters

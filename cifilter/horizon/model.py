@@ -5,17 +5,22 @@ Ajgl et al. 2014); :func:`steady_state_covariance` is their limit (eq. 35). See
 ``docs/methods/horizon.rst``.
 """
 
+from typing import Optional
+
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import linalg as sla
 
 from .._numerics.linalg import condition_number, ill_conditioned, symmetrize
 from .._numerics.validation import as_float_array, as_matrix, check_covariances, check_int
+from ._core import PerStep
 from ._model import as_model, at_horizon, checked_bound, riccati_scaled, update
 
 __all__ = ["propagate_bound", "steady_state_covariance"]
 
-
-def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
+def propagate_bound(P: ArrayLike, F: ArrayLike, Q: ArrayLike, H: PerStep, R: PerStep,
+                    horizon: int, G: Optional[ArrayLike] = None, *,
+                    history: bool = False) -> NDArray[np.float64]:
     """Carry a covariance bound through ``horizon`` Kalman filter steps.
 
     Each step is the prediction (16), ``M = F P F^T + G Q G^T``, followed by the update with
@@ -89,14 +94,15 @@ def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
     [[0.5714, 0.0], [0.0, 0.8]]
     """
     horizon = check_int(horizon, "horizon", low=0)
-    P = as_float_array(P, "P")
-    if P.ndim < 2 or P.shape[-1] != P.shape[-2]:
-        raise ValueError(f"P must hold square matrices (..., n, n), got shape {P.shape}")
-    P, _ = check_covariances(P, "P")
-    model = as_model(F, Q, H, R, G, P.shape[-1], steps=horizon if horizon else None)
-    scaled = riccati_scaled(P, model, horizon)
+    P0 = as_float_array(P, "P")
+    if P0.ndim < 2 or P0.shape[-1] != P0.shape[-2]:
+        raise ValueError(f"P must hold square matrices (..., n, n), got shape {P0.shape}")
+    P0, _ = check_covariances(P0, "P")
+    model = as_model(F, Q, H, R, G, P0.shape[-1], steps=horizon if horizon else None)
+    scaled = riccati_scaled(P0, model, horizon)
     steps = range(horizon + 1) if history else [horizon]
-    bounds = [checked_bound(*scaled[k], at_horizon(k if k == horizon else f"{k} of {horizon}"))
+    bounds = [checked_bound(scaled[k][0], scaled[k][1],
+                            at_horizon(k if k == horizon else f"{k} of {horizon}"))
               for k in steps]
     if not history:
         return bounds[-1]
@@ -104,7 +110,9 @@ def propagate_bound(P, F, Q, H, R, horizon, G=None, *, history=False):
     return np.stack([np.broadcast_to(b, batch + b.shape[-2:]) for b in bounds], axis=-3)
 
 
-def steady_state_covariance(F, Q, H, R, G=None):
+def steady_state_covariance(F: ArrayLike, Q: ArrayLike, H: Optional[ArrayLike],
+                            R: Optional[ArrayLike],
+                            G: Optional[ArrayLike] = None) -> NDArray[np.float64]:
     """Steady-state posterior covariance of the local Kalman filter.
 
     The prior ``M`` solves the discrete algebraic Riccati equation

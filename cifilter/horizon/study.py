@@ -5,10 +5,12 @@ See ``docs/methods/horizon.rst``.
 """
 
 import numbers
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Optional
+from typing import TYPE_CHECKING, Any, Optional, Union, cast
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .._numerics.criteria import criterion_value, parse_criterion
 from .._numerics.validation import Estimates, as_covariances, check_int
@@ -31,6 +33,10 @@ from ._model import (
     stack_terms,
 )
 from .model import steady_state_covariance
+
+if TYPE_CHECKING:  # matplotlib is an optional dependency (for plot only)
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure, SubFigure
 
 __all__ = ["HorizonStudy", "horizon_study"]
 
@@ -81,24 +87,25 @@ class HorizonStudy:
     (True, 0.042)
     """
 
-    horizons: np.ndarray
-    omega: np.ndarray
-    batch: np.ndarray
-    recursive: np.ndarray
-    omega_recursive: np.ndarray
+    horizons: NDArray[np.int_]
+    omega: NDArray[np.float64]
+    batch: NDArray[np.float64]
+    recursive: NDArray[np.float64]
+    omega_recursive: NDArray[np.float64]
     criterion: str
-    P_batch: np.ndarray
-    P_recursive: np.ndarray
-    steady_P: Optional[np.ndarray]
-    steady_value: Optional[np.ndarray]
-    omega_limit: np.ndarray
-    rho: Optional[np.ndarray] = None
+    P_batch: NDArray[np.float64]
+    P_recursive: NDArray[np.float64]
+    steady_P: Optional[NDArray[np.float64]]
+    steady_value: Optional[NDArray[np.float64]]
+    omega_limit: NDArray[np.float64]
+    rho: Optional[NDArray[np.float64]] = None
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return (f"HorizonStudy(criterion={self.criterion!r}, horizons {self.horizons[0]}.."
                 f"{self.horizons[-1]}, batch shape={np.shape(self.omega_recursive)})")
 
-    def plot(self, axes=None, label=None):
+    def plot(self, axes: Optional[Sequence["Axes"]] = None,
+             label: Optional[str] = None) -> Union["Figure", "SubFigure"]:
         """Draw omega and the two criteria against the horizon (as Figs. 3 and 4).
 
         Parameters
@@ -177,7 +184,7 @@ def _as_horizons(horizons):
 _LIMIT_HORIZONS = (200, 400)
 
 
-def horizon_study(*args, **kwargs):
+def horizon_study(*args: Any, **kwargs: Any) -> HorizonStudy:
     """Batch versus recursive Covariance Intersection for a range of horizons.
 
     For each horizon ``kappa``, the batch approach of Ajgl et al. (2014) chooses omega for the
@@ -288,7 +295,7 @@ def horizon_study(*args, **kwargs):
                                                      collect=everything)))
     terms = stack_terms([collected[h] for h in horizons])
     problem = problem_of(est)
-    problem_k = Problem(*(None if p is None else _along_horizons(p) for p in problem))
+    problem_k = Problem._make(None if p is None else _along_horizons(p) for p in problem)
     weights, _ = solve(problem_k, terms, kind, W, rho_k, horizons)
     recursive_w, _ = solve(problem, collected[0], kind, W, rho, 0)
     P_hat = fused_bound(problem_k, terms, weights, rho_k)
@@ -339,4 +346,7 @@ def _along_horizons(part):
     return part[..., None, :, :, :]
 
 
-horizon_study.__signature__ = documented_signature("horizons", {"limit": True, "rho": None})
+# The signature of the Ps form, for inspect.signature, help and the documentation; the cast
+# because mypy does not know the attribute on functions (attr-defined).
+cast(Any, horizon_study).__signature__ = documented_signature(
+    "horizons", {"limit": True, "rho": None}, HorizonStudy)

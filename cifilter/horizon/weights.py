@@ -5,15 +5,24 @@ Both validate their input once and call the core shared with the front door's ho
 (:mod:`cifilter.horizon._core`). Method and proofs: ``docs/methods/horizon.rst``.
 """
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Optional, Union, cast
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from .._numerics.criteria import parse_criterion
 from .._numerics.validation import as_covariances, check_int
 from ..rules._partial_correlation import partial_weights
-from ._core import as_rho, bind_arguments, choose, documented_signature, problem_of
+from ._core import (
+    PerStep,
+    as_rho,
+    bind_arguments,
+    choose,
+    documented_signature,
+    problem_of,
+)
 from ._model import as_model
 
 __all__ = ["HorizonOmega", "horizon_weights", "optimal_omega"]
@@ -56,18 +65,18 @@ class HorizonOmega:
     (0.0, 0.5)
     """
 
-    omega: np.ndarray
-    value: np.ndarray
-    P: np.ndarray
-    info: Any
+    omega: NDArray[np.float64]
+    value: NDArray[np.float64]
+    P: NDArray[np.float64]
+    info: dict[str, Any]
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         return (f"HorizonOmega(omega={np.array2string(np.asarray(self.omega), precision=4)}, "
                 f"value={np.array2string(np.asarray(self.value), precision=4)}, "
                 f"horizon={self.info.get('horizon')})")
 
 
-def optimal_omega(*args, **kwargs):
+def optimal_omega(*args: Any, **kwargs: Any) -> HorizonOmega:
     """The CI weight that minimises the bound ``horizon`` filter steps after the fusion.
 
     The batch approach of Ajgl et al. (2014): the CI bound
@@ -167,7 +176,10 @@ def optimal_omega(*args, **kwargs):
     return HorizonOmega(choice.weights[..., 0], choice.value, choice.P, choice.info)
 
 
-def horizon_weights(Ps, F, Q, H, R, horizon, criterion="trace", G=None, *, rho=None):
+def horizon_weights(Ps: Union[ArrayLike, Sequence[ArrayLike]], F: ArrayLike, Q: ArrayLike,
+                    H: PerStep, R: PerStep, horizon: int,
+                    criterion: Union[str, ArrayLike] = "trace", G: Optional[ArrayLike] = None,
+                    *, rho: Optional[ArrayLike] = None) -> HorizonOmega:
     """Horizon-optimal CI weights of N estimates (the generalisation of :func:`optimal_omega`).
 
     The CI bound ``(sum_i w_i P_i^-1)^-1`` is carried through ``horizon`` filter steps and
@@ -266,4 +278,7 @@ def _choose(est, a, horizon, rho):
     return choice._replace(info=info)
 
 
-optimal_omega.__signature__ = documented_signature("horizon", {"rho": None})
+# A function's __signature__ is what inspect.signature, help and the documentation show; the
+# cast because mypy does not know the attribute on functions (attr-defined).
+cast(Any, optimal_omega).__signature__ = documented_signature("horizon", {"rho": None},
+                                                              HorizonOmega)

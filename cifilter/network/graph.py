@@ -12,9 +12,12 @@ al.'s model, the one Inverse CI assumes). :meth:`Scenario.from_filters` builds a
 from the user's own ``cifilter.KalmanFilter`` objects and graph.
 """
 
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any, Optional
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
 from .._numerics.validation import as_float_array, check_covariances, check_int, check_scalar
@@ -43,7 +46,8 @@ _START = np.array([0.0, 10.0, 0.0, 5.0])
 _PRIOR = np.diag([100.0, 25.0, 100.0, 25.0])
 
 
-def constant_velocity_model(dt, q):
+def constant_velocity_model(
+        dt: float, q: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """State transition and process noise of a 2-D constant-velocity model.
 
     Parameters
@@ -67,7 +71,8 @@ def constant_velocity_model(dt, q):
     """
     F1 = np.array([[1.0, dt], [0.0, 1.0]])
     Q1 = q * np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]])
-    return np.kron(np.eye(2), F1), np.kron(np.eye(2), Q1)
+    # numpy's stubs type np.kron of float64 arrays as floating[Any]
+    return np.kron(np.eye(2), F1), np.kron(np.eye(2), Q1)  # type: ignore[return-value]
 
 
 def _position_sensor():
@@ -76,7 +81,7 @@ def _position_sensor():
     return H
 
 
-def adjacency_matrix(graph, nodes=None):
+def adjacency_matrix(graph: Any, nodes: Optional[int] = None) -> NDArray[np.bool_]:
     """A symmetric boolean adjacency matrix from a matrix, an edge list or a graph object.
 
     Parameters
@@ -171,16 +176,16 @@ class Scenario:
     """
 
     name: str
-    F: np.ndarray
-    Q: np.ndarray
-    H: tuple
-    R: tuple
-    adjacency: np.ndarray
-    x0: np.ndarray
-    P0: np.ndarray
-    positions: np.ndarray = None
+    F: NDArray[np.float64]
+    Q: NDArray[np.float64]
+    H: tuple[NDArray[np.float64], ...]
+    R: tuple[NDArray[np.float64], ...]
+    adjacency: NDArray[np.bool_]
+    x0: NDArray[np.float64]
+    P0: NDArray[np.float64]
+    positions: Optional[NDArray[np.float64]] = None
     description: str = ""
-    position_indices: tuple = POSITION
+    position_indices: tuple[int, ...] = POSITION
 
     def __post_init__(self):
         F = as_float_array(self.F, "F")
@@ -227,7 +232,7 @@ class Scenario:
             raise ValueError("Q must be symmetric positive semidefinite")
 
     @property
-    def nodes(self):
+    def nodes(self) -> int:
         """Number of nodes.
 
         Returns
@@ -244,7 +249,7 @@ class Scenario:
         return self.adjacency.shape[0]
 
     @property
-    def dim(self):
+    def dim(self) -> int:
         """Dimension of the state.
 
         Returns
@@ -261,7 +266,7 @@ class Scenario:
         return self.F.shape[0]
 
     @property
-    def degrees(self):
+    def degrees(self) -> NDArray[np.int_]:
         """Number of neighbours of each node.
 
         Returns
@@ -278,7 +283,7 @@ class Scenario:
         return self.adjacency.sum(axis=1)
 
     @property
-    def edges(self):
+    def edges(self) -> list[tuple[int, int]]:
         """The links as ``(i, j)`` pairs with ``i < j``.
 
         Returns
@@ -295,7 +300,7 @@ class Scenario:
         i, j = np.nonzero(np.triu(self.adjacency))
         return [(int(a), int(b)) for a, b in zip(i, j)]
 
-    def with_graph(self, graph):
+    def with_graph(self, graph: Any) -> "Scenario":
         """The same nodes with other links.
 
         Parameters
@@ -327,7 +332,9 @@ class Scenario:
                         self.P0, self.positions, self.description, self.position_indices)
 
     @classmethod
-    def from_filters(cls, filters, graph, *, x0=None, name="custom", positions=None):
+    def from_filters(cls, filters: Iterable[Any], graph: Any, *, x0: Optional[ArrayLike] = None,
+                     name: str = "custom",
+                     positions: Optional[ArrayLike] = None) -> "Scenario":
         """A scenario from the user's own filters (one per node) and graph.
 
         Each filter gives its node's sensor (``H``, ``R``) and prior covariance ``P``;
@@ -388,9 +395,12 @@ class Scenario:
                              f"{len(filters)} filters")
         x0 = np.asarray(filters[0].x, float).reshape(-1) if x0 is None else x0
         n = F.shape[0]
+        # x0 and positions may be array-likes: __post_init__ converts them (and checks them)
         return cls(name, F, Q, tuple(np.atleast_2d(np.asarray(kf.H, float)) for kf in filters),
                    tuple(np.atleast_2d(np.asarray(kf.R, float)) for kf in filters), adjacency,
-                   x0, np.stack([np.asarray(kf.P, float) for kf in filters]), positions,
+                   x0,  # type: ignore[arg-type]
+                   np.stack([np.asarray(kf.P, float) for kf in filters]),
+                   positions,  # type: ignore[arg-type]
                    "user-defined filters and graph",
                    POSITION if n == 4 else (0,))
 
@@ -413,7 +423,8 @@ def _build(name, adjacency, R, positions, description, dt, q):
                     _PRIOR, positions, description)
 
 
-def naveen_taylor(*, sigma=5.0, dof=30, dt=1.0, q=0.5, sensor_seed=2):
+def naveen_taylor(*, sigma: float = 5.0, dof: int = 30, dt: float = 1.0, q: float = 0.5,
+                  sensor_seed: int = 2) -> Scenario:
     """The six-node network of Naveen & Taylor (Section V-B), tracking a moving target.
 
     The topology is that of their Fig. 5 as :mod:`cifilter.cli.reproduce.naveen` reads it (the
@@ -458,7 +469,7 @@ def naveen_taylor(*, sigma=5.0, dof=30, dt=1.0, q=0.5, sensor_seed=2):
                   _circle(6), description, dt, q)
 
 
-def ring(nodes=6, *, dt=1.0, q=0.5):
+def ring(nodes: int = 6, *, dt: float = 1.0, q: float = 0.5) -> Scenario:
     """A ring of nodes with the two-track demo's sensors A and B alternating.
 
     Parameters
@@ -486,7 +497,7 @@ def ring(nodes=6, *, dt=1.0, q=0.5):
                   "(3, 8 m) alternating", dt, q)
 
 
-def fully_connected(nodes=4, *, dt=1.0, q=0.5):
+def fully_connected(nodes: int = 4, *, dt: float = 1.0, q: float = 0.5) -> Scenario:
     """Every node linked to every other, sensors A and B alternating.
 
     Parameters
@@ -513,7 +524,8 @@ def fully_connected(nodes=4, *, dt=1.0, q=0.5):
                   f"{nodes} nodes, all linked, sensors A and B alternating", dt, q)
 
 
-def chain(nodes=5, *, sigma=5.0, dt=1.0, q=0.5, sensor_seed=3):
+def chain(nodes: int = 5, *, sigma: float = 5.0, dt: float = 1.0, q: float = 0.5,
+          sensor_seed: int = 3) -> Scenario:
     """A chain of k nodes with the sensors of Weng & Djurić's distributed Kalman filter
     model (journal, model 2, eqs. (54)-(56)).
 
@@ -556,7 +568,8 @@ def chain(nodes=5, *, sigma=5.0, dt=1.0, q=0.5, sensor_seed=3):
                   f"covariances from W_2(3, sigma^2 I), sigma = {sigma:g} m", dt, q)
 
 
-def two_tracks(*, dt=1.0, q=0.5, sigma_a=(10.0, 2.0), sigma_b=(3.0, 8.0)):
+def two_tracks(*, dt: float = 1.0, q: float = 0.5, sigma_a: tuple[float, float] = (10.0, 2.0),
+               sigma_b: tuple[float, float] = (3.0, 8.0)) -> Scenario:
     """The two sensors of the two-track demo (``python -m cifilter demo --scenario
     two-tracks``) as a network of two linked nodes.
 
@@ -584,7 +597,9 @@ def two_tracks(*, dt=1.0, q=0.5, sigma_a=(10.0, 2.0), sigma_b=(3.0, 8.0)):
                   "the two-track demo's sensors A and B, linked", dt, q)
 
 
-def common_information(*, dt=1.0, q=0.0, sigma_a=(10.0, 2.0), sigma_b=(3.0, 8.0)):
+def common_information(*, dt: float = 1.0, q: float = 0.0,
+                       sigma_a: tuple[float, float] = (10.0, 2.0),
+                       sigma_b: tuple[float, float] = (3.0, 8.0)) -> Scenario:
     """Two linked nodes whose correlation is common information: a target with no process
     noise, tracked with feedback.
 
@@ -649,7 +664,7 @@ def common_information(*, dt=1.0, q=0.0, sigma_a=(10.0, 2.0), sigma_b=(3.0, 8.0)
                   np.array([[-1.0, 0.0], [1.0, 0.0]]), description, dt, q)
 
 
-_SCENARIOS = {
+_SCENARIOS: dict[str, Callable[..., Scenario]] = {
     "naveen-taylor": naveen_taylor,
     "ring": ring,
     "chain": chain,
@@ -659,7 +674,7 @@ _SCENARIOS = {
 }
 
 
-def scenario_names():
+def scenario_names() -> tuple[str, ...]:
     """Names accepted by :func:`get_scenario`.
 
     Returns
@@ -676,7 +691,7 @@ def scenario_names():
     return tuple(_SCENARIOS)
 
 
-def get_scenario(name, **options):
+def get_scenario(name: str, **options: Any) -> Scenario:
     """A ready scenario by name.
 
     Parameters

@@ -21,9 +21,12 @@ bound it implies) gets the joint covariance of the estimates it fuses.
 """
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any, Optional, Union
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .._numerics.linalg import cholesky
 from .._numerics.validation import as_rng, check_int, check_scalar
@@ -60,13 +63,13 @@ class NetworkData:
     ((3, 5, 4), (3, 4, 4), True)
     """
 
-    truth: np.ndarray
-    measurements: tuple
-    initial: np.ndarray
-    delivered: np.ndarray = None
+    truth: NDArray[np.float64]
+    measurements: tuple[NDArray[np.float64], ...]
+    initial: NDArray[np.float64]
+    delivered: Optional[NDArray[np.bool_]] = None
 
     @property
-    def runs(self):
+    def runs(self) -> int:
         """Number of Monte Carlo runs.
 
         Returns
@@ -83,7 +86,7 @@ class NetworkData:
         return self.truth.shape[0]
 
     @property
-    def steps(self):
+    def steps(self) -> int:
         """Number of time steps.
 
         Returns
@@ -100,7 +103,8 @@ class NetworkData:
         return self.truth.shape[1]
 
 
-def simulate_data(scenario, runs, steps, *, loss=0.0, rng=None):
+def simulate_data(scenario: Scenario, runs: int, steps: int, *, loss: float = 0.0,
+                  rng: Optional[Union[int, np.random.Generator]] = None) -> NetworkData:
     """Simulate the target, the measurements, the initial estimates and the packet losses.
 
     Parameters
@@ -191,8 +195,8 @@ class NetworkTrack:
     """
 
     method: str
-    x: np.ndarray
-    P: np.ndarray
+    x: NDArray[np.float64]
+    P: NDArray[np.float64]
     fuse_seconds: float = 0.0
     fusions: int = 0
     exchanges: int = 0
@@ -249,8 +253,10 @@ def _check_config(period, sequential, delay, feedback):
     return period
 
 
-def run_network(scenario, data, method="ci", *, feedback=True, period=1, sequential=False,
-                delay=False, rng=None, options=None):
+def run_network(scenario: Scenario, data: NetworkData, method: Optional[str] = "ci", *,
+                feedback: bool = True, period: int = 1, sequential: bool = False,
+                delay: bool = False, rng: Optional[Union[int, np.random.Generator]] = None,
+                options: Optional[Mapping[str, Any]] = None) -> NetworkTrack:
     """Run the decentralised network with one fusion rule over all runs at once.
 
     Parameters
@@ -336,8 +342,9 @@ def run_network(scenario, data, method="ci", *, feedback=True, period=1, sequent
             joint = big_F @ joint @ big_F.T + big_Q
         x_prior, P_prior, joint_prior = x, P, joint
         x, P = x.copy(), P.copy()
-        A_blocks = np.empty((runs, nodes, n, n)) if need_joint else None
-        KRK_blocks = np.empty((runs, nodes, n, n)) if need_joint else None
+        # arrays when need_joint, else None (Any: mypy cannot tie them to need_joint)
+        A_blocks: Any = np.empty((runs, nodes, n, n)) if need_joint else None
+        KRK_blocks: Any = np.empty((runs, nodes, n, n)) if need_joint else None
         for (idx, H, R), z in zip(groups, measurements):
             x[:, idx], P[:, idx], A, KRK = _update(x[:, idx], P[:, idx], z[:, k], H, R)
             if need_joint:
@@ -456,7 +463,7 @@ def _fuse_groups(record, groups, fused_x, fused_P, messages_x, messages_P, maps,
     return count
 
 
-def centralised(scenario, data):
+def centralised(scenario: Scenario, data: NetworkData) -> NetworkTrack:
     """The centralised Kalman filter: one filter with every node's measurement.
 
     It starts from the fusion of the nodes' independent priors and is the best any

@@ -14,9 +14,12 @@ truth hook fails, ...) is reported with the reason instead of stopping the study
 """
 
 import zlib
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any, Optional, Union
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .. import metrics
 from .._numerics.validation import as_rng, check_int, check_scalar
@@ -69,14 +72,14 @@ class NetworkStudy:
     """
 
     scenario: Scenario
-    methods: tuple = None
+    methods: Optional[tuple[str, ...]] = None
     steps: int = 100
     feedback: bool = True
     period: int = 1
     sequential: bool = False
     delay: bool = False
     loss: float = 0.0
-    options: dict = field(default=None, compare=False)
+    options: Optional[dict[str, dict[str, Any]]] = field(default=None, compare=False)
 
     def __post_init__(self):
         if not isinstance(self.scenario, Scenario):
@@ -158,7 +161,8 @@ def _estimators(results):
     return names
 
 
-def summarize(results, scenario, *, confidence=0.95):
+def summarize(results: Mapping[str, NDArray[Any]], scenario: Scenario, *,
+              confidence: float = 0.95) -> list[dict[str, Any]]:
     """Score a study's results: one row per estimator.
 
     Parameters
@@ -217,8 +221,9 @@ def summarize(results, scenario, *, confidence=0.95):
     return rows
 
 
-def compare(scenario, methods=None, *, runs=20, steps=100, rng=None, confidence=0.95,
-            **config):
+def compare(scenario: Scenario, methods: Optional[Sequence[str]] = None, *, runs: int = 20,
+            steps: int = 100, rng: Optional[Union[int, np.random.Generator]] = None,
+            confidence: float = 0.95, **config: Any) -> list[dict[str, Any]]:
     """Compare rules on one network in this process: simulate, run, score.
 
     Parameters

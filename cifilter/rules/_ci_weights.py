@@ -11,6 +11,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .._kernels import dispatch as kernels
 from .._numerics.criteria import GAP_TOL, certified_gap, criterion_gradient, criterion_of_factor
@@ -302,7 +303,7 @@ def _pair_derivative(a, c, kind):
     return derivative
 
 
-_IDENTITIES = {}
+_IDENTITIES: dict[int, NDArray[np.float64]] = {}
 
 
 def _identity(n):

@@ -24,7 +24,10 @@ Samples are processed in chunks of bounded size, with a random stream that does 
 on the chunking.
 """
 
+from typing import Any, Optional, Union
+
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from .._numerics.linalg import (
     IllConditionedError,
@@ -286,7 +289,9 @@ def _sample_joint(L, P, dof, size, rng):
     return joint.reshape(batch + (size, dim, dim))
 
 
-def sample_joint_covariances(Ps, dof, size, rng=None):
+def sample_joint_covariances(Ps: ArrayLike, dof: float, size: int,
+                             rng: Union[int, np.random.Generator, None] = None
+                             ) -> NDArray[np.float64]:
     """Sample joint covariances with given diagonal blocks under a block-diagonal Wishart prior.
 
     The joint covariance ``A`` of N estimates of dimension n has the prior
@@ -490,7 +495,9 @@ def _check_result(x_hat, P, gains, Ps):
                               "are too ill-conditioned for the Bayesian fusion")
 
 
-def bayesian_fusion(xs, Ps, dof=None, samples=100, rng=None):
+def bayesian_fusion(xs: ArrayLike, Ps: ArrayLike, dof: Optional[float] = None,
+                    samples: int = 100, rng: Union[int, np.random.Generator, None] = None
+                    ) -> FusionResult:
     """Monte Carlo MMSE fusion of estimates with unknown cross-covariances (Wishart prior).
 
     Draws ``samples`` joint covariances with the known diagonal blocks from their
@@ -661,7 +668,7 @@ def _bayes_truth_options(joint, rng):
     return {"rng": rng}
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="bayes",
     function=bayesian_fusion,
     core=_bayesian_fusion,

@@ -13,8 +13,11 @@ For two zero-mean errors ``a`` and ``b`` with covariances ``P_a = X X^T`` and
 """
 
 import numbers
+from collections.abc import Sequence
+from typing import Union, cast
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from .._numerics.linalg import cholesky, solve_lower, symmetrize
 from .._numerics.validation import (
@@ -35,12 +38,13 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------- validation
-def _covariance(P, name):
+def _covariance(P: ArrayLike, name: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """A validated covariance stack (..., n, n) and its lower Cholesky factor."""
     return check_covariances(as_float_array(P, name), name)
 
 
-def _unit_interval(value, name, batch_shape):
+def _unit_interval(value: ArrayLike, name: str, batch_shape: tuple[int, ...]
+                   ) -> NDArray[np.float64]:
     """``value`` as an array in [0, 1] that broadcasts against ``batch_shape``."""
     array = as_float_array(value, name)
     check_finite(array, name)
@@ -103,7 +107,8 @@ def _trace_terms(Pa, Pb, K1, K2):
 
 
 # --------------------------------------------------------------------------- trace bounds
-def worst_case_trace(Pa, Pb, K1, K2, rho=1.0):
+def worst_case_trace(Pa: ArrayLike, Pb: ArrayLike, K1: ArrayLike, K2: ArrayLike,
+                     rho: ArrayLike = 1.0) -> Union[np.float64, NDArray[np.float64]]:
     """Exact worst-case trace of the covariance of ``K1 a + K2 b`` (Theorems 1 and 2).
 
     With ``Pa = X X^T`` and ``Pb = Y Y^T``, the largest ``trace(cov(K1 a + K2 b))`` over all
@@ -170,7 +175,8 @@ def worst_case_trace(Pa, Pb, K1, K2, rho=1.0):
     return _scalar_or_array(t1 + t2 + 2.0 * rho * cross)
 
 
-def ci_trace_bound(Pa, Pb, K1, K2, rho=1.0):
+def ci_trace_bound(Pa: ArrayLike, Pb: ArrayLike, K1: ArrayLike, K2: ArrayLike,
+                   rho: ArrayLike = 1.0) -> Union[np.float64, NDArray[np.float64]]:
     """The closed-form trace bound of Remark 2 and Theorem 2.
 
     With ``t1 = Tr(K1 Pa K1^T)``, ``t2 = Tr(K2 Pb K2^T)`` and ``Pa = X X^T``,
@@ -236,7 +242,8 @@ def ci_trace_bound(Pa, Pb, K1, K2, rho=1.0):
 
 
 # --------------------------------------------------------------------------- correlation
-def correlation_bound(Pa, Pb, Pab):
+def correlation_bound(Pa: ArrayLike, Pb: ArrayLike, Pab: ArrayLike
+                      ) -> Union[np.float64, NDArray[np.float64]]:
     """The correlation coefficient bound of two random vectors, eq. (8).
 
     ``rho_ab = sigma_max(X^-1 Pab Y^-T)`` for any factors ``Pa = X X^T``, ``Pb = Y Y^T``
@@ -284,7 +291,7 @@ def correlation_bound(Pa, Pb, Pab):
     """
     Pa, X = _covariance(Pa, "Pa")
     Pb, Y = _covariance(Pb, "Pb")
-    Pab = as_matrix(Pab, "Pab")
+    Pab = cast("NDArray[np.float64]", as_matrix(Pab, "Pab"))
     if Pab.shape[-2:] != (Pa.shape[-1], Pb.shape[-1]):
         raise ValueError(
             f"Pab must have shape (..., {Pa.shape[-1]}, {Pb.shape[-1]}) to match Pa and Pb, "
@@ -350,7 +357,8 @@ def _whitened_joint(joint, block_sizes):
     return symmetrize(solve_lower(L, np.swapaxes(left, -1, -2))), sizes
 
 
-def common_correlation_bound(joint, block_sizes):
+def common_correlation_bound(joint: ArrayLike, block_sizes: Union[int, Sequence[int]]
+                             ) -> Union[np.float64, NDArray[np.float64]]:
     """Smallest common ``rho`` for which m vectors satisfy Definition 2, eq. (21).
 
     With ``D`` the block diagonal of ``joint`` (the covariances ``P_i``), eq. (21) with
@@ -405,7 +413,9 @@ def common_correlation_bound(joint, block_sizes):
     return _scalar_or_array(1.0 - np.linalg.eigvalsh(W)[..., 0])
 
 
-def is_rho_admissible(joint, block_sizes, rho, *, tol=1e-9):
+def is_rho_admissible(joint: ArrayLike, block_sizes: Union[int, Sequence[int]],
+                      rho: ArrayLike, *, tol: float = 1e-9
+                      ) -> Union[np.bool_, NDArray[np.bool_]]:
     """Whether m vectors have correlation coefficient bound ``rho`` (Definition 2, eq. (21)).
 
     Checks that ``P_m^(rho)``, the joint covariance with its diagonal blocks ``P_i``

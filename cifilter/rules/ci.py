@@ -10,6 +10,11 @@ cross-covariance of the inputs. The weights are chosen by minimising a criterion
 ``P`` (trace, determinant or ``trace(W P)``) or by a fast non-iterative rule.
 """
 
+from typing import Any, Union
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
 from .._kernels import dispatch as kernels
 from .._numerics.criteria import criterion_report, parse_criterion
 from .._numerics.information import weighted_fusion
@@ -20,7 +25,8 @@ from ._ci_weights import FAST_OMEGA_RULES, optimal_weights
 __all__ = ["FAST_OMEGA_RULES", "ci_weights", "covariance_intersection"]
 
 
-def ci_weights(Ps, criterion="trace", *, method="auto"):
+def ci_weights(Ps: ArrayLike, criterion: Union[str, ArrayLike] = "trace", *,
+               method: str = "auto") -> tuple[NDArray[np.float64], dict[str, Any]]:
     """Criterion-optimal Covariance Intersection weights.
 
     Parameters
@@ -68,7 +74,9 @@ def ci_weights(Ps, criterion="trace", *, method="auto"):
 
 
 # --------------------------------------------------------------------------- public function
-def covariance_intersection(xs, Ps, criterion="trace", omega=None):
+def covariance_intersection(xs: ArrayLike, Ps: ArrayLike,
+                            criterion: Union[str, ArrayLike] = "trace",
+                            omega: Union[float, str, ArrayLike, None] = None) -> FusionResult:
     """Covariance Intersection of two or more estimates with unknown cross-correlation.
 
     Computes ``P^-1 = sum_i w_i P_i^-1`` and ``x = P sum_i w_i P_i^-1 x_i`` with weights
@@ -201,7 +209,7 @@ def _covariance_intersection(est, criterion="trace", omega=None):
     return FusionResult(restore_style(x, est.column), P, "ci", weights, gains, info)
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="ci",
     function=covariance_intersection,
     core=_covariance_intersection,

@@ -11,7 +11,10 @@ returned gains *if* the assumption holds; it is no bound. Derivation and the com
 with partial-correlation CI: ``docs/methods/cross.rst``.
 """
 
+from typing import Any
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._numerics.information import checked_cholesky
 from .._numerics.linalg import ill_conditioned, symmetrize
@@ -23,7 +26,7 @@ __all__ = ["cross_covariance_fusion"]
 _EPS = np.finfo(float).eps
 
 
-def cross_covariance_fusion(xs, Ps, rho=0.4):
+def cross_covariance_fusion(xs: ArrayLike, Ps: ArrayLike, rho: float = 0.4) -> FusionResult:
     """Fuse estimates with an assumed cross-covariance ``P_ij = rho P_i^1/2 P_j^1/2``.
 
     The Bar-Shalom-Campo fusion (the best linear unbiased fusion for a known joint
@@ -152,7 +155,7 @@ def _cross_covariance_fusion(est, rho=0.4):
     return FusionResult(restore_style(x, est.column), P, "cross", None, gains, info)
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="cross",
     function=cross_covariance_fusion,
     core=_cross_covariance_fusion,

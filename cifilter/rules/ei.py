@@ -7,6 +7,10 @@ The geometry it shares with PC-EI is in :mod:`cifilter.rules._ellipsoidal`; the 
 on the documentation page (``docs/methods/ei.rst``).
 """
 
+from typing import Any
+
+from numpy.typing import ArrayLike
+
 from .._numerics.validation import restore_style
 from ..result import FusionResult
 from ._ellipsoidal import (
@@ -22,8 +26,9 @@ from ._ellipsoidal import (
 __all__ = ["MUTUAL_MEANS", "REGULARIZERS", "ellipsoidal_intersection"]
 
 
-def ellipsoidal_intersection(xs, Ps, *args, eps=DEFAULT_EPS, mutual_mean="sijs-lazar",
-                             regularizer="information"):
+def ellipsoidal_intersection(xs: ArrayLike, Ps: ArrayLike, *args: ArrayLike,
+                             eps: float = DEFAULT_EPS, mutual_mean: str = "sijs-lazar",
+                             regularizer: str = "information") -> FusionResult:
     """Fuse two estimates by Ellipsoidal Intersection.
 
     EI takes as common covariance the admissible one (``C_c >= Pa``, ``C_c >= Pb``) of
@@ -155,7 +160,7 @@ def _ellipsoidal_intersection(est, eps=DEFAULT_EPS, *, mutual_mean="sijs-lazar",
     return FusionResult(restore_style(x, est.column), P, "ei", None, gains, info)
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="ei",
     function=ellipsoidal_intersection,
     core=_ellipsoidal_intersection,

@@ -12,7 +12,10 @@ gives). More than two estimates are fused sequentially. Derivations and the nume
 formulation: ``docs/methods/ici.rst``.
 """
 
+from typing import Any, Union
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._numerics.criteria import criterion_report, parse_criterion
 from .._numerics.linalg import cholesky
@@ -28,7 +31,10 @@ from ._inverse_ci import (
 __all__ = ["inverse_covariance_intersection"]
 
 
-def inverse_covariance_intersection(xs, Ps, criterion="trace", omega=None):
+def inverse_covariance_intersection(xs: ArrayLike, Ps: ArrayLike,
+                                    criterion: Union[str, ArrayLike] = "trace",
+                                    omega: Union[float, ArrayLike, None] = None
+                                    ) -> FusionResult:
     """Inverse Covariance Intersection of estimates that share unknown common information.
 
     For two estimates (Noack, Sijs, Reinhardt & Hanebeck 2017, the ICI equations of
@@ -189,7 +195,7 @@ def _inverse_covariance_intersection(est, criterion="trace", omega=None):
                         weights=weights)
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="ici",
     function=inverse_covariance_intersection,
     core=_inverse_covariance_intersection,

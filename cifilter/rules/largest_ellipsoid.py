@@ -8,6 +8,10 @@ ellipsoids, and equals Ellipsoidal Intersection's; the means agree with EI's unr
 (``eps=0``) mean. No guarantee: see ``docs/methods/largest_ellipsoid.rst``.
 """
 
+from typing import Any
+
+from numpy.typing import ArrayLike
+
 from .._numerics.validation import as_estimates, restore_style
 from ..result import FusionResult
 from ._ellipsoidal import check_pair, largest_ellipsoid_fusion
@@ -15,7 +19,7 @@ from ._ellipsoidal import check_pair, largest_ellipsoid_fusion
 __all__ = ["largest_ellipsoid"]
 
 
-def largest_ellipsoid(xs, Ps):
+def largest_ellipsoid(xs: ArrayLike, Ps: ArrayLike) -> FusionResult:
     """Largest-ellipsoid (safe) fusion: per decorrelated direction, keep the better estimate.
 
     With ``Pa = T T^T`` and ``Pb = T diag(d) T^T`` (simultaneous diagonalisation; step 1-2
@@ -99,7 +103,7 @@ def _largest_ellipsoid(est):
     return FusionResult(restore_style(x, est.column), P, "le", None, gains, info)
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="le",
     function=largest_ellipsoid,
     core=_largest_ellipsoid,

@@ -2,7 +2,10 @@
 (the yardstick) and its special case of independent errors ("naive" fusion).
 """
 
+from typing import Any
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._kernels import dispatch as kernels
 from .._numerics.information import weighted_fusion
@@ -20,7 +23,7 @@ from ..result import FusionResult
 __all__ = ["naive_fusion", "optimal_fusion"]
 
 
-def naive_fusion(xs, Ps):
+def naive_fusion(xs: ArrayLike, Ps: ArrayLike) -> FusionResult:
     """Fuse estimates as if their errors were independent (information-form product).
 
     ``P^-1 = sum_i P_i^-1`` and ``x = P sum_i P_i^-1 x_i``: the optimal fusion when all
@@ -231,7 +234,7 @@ def _batch(x_shape, J_shape, x_name="xs", J_name="joint"):
         ) from None
 
 
-def optimal_fusion(xs, joint):
+def optimal_fusion(xs: ArrayLike, joint: ArrayLike) -> FusionResult:
     """Best linear unbiased fusion with a known joint error covariance.
 
     With ``E = [I, ..., I]^T`` (N stacked n x n identities, eq. (10) of Weng & Djurić,
@@ -349,7 +352,7 @@ def _optimal_truth_options(joint, rng):
     return {"joint": joint}
 
 
-NAIVE_REGISTRATION = dict(
+NAIVE_REGISTRATION: dict[str, Any] = dict(
     name="naive",
     function=naive_fusion,
     core=_naive_fusion,
@@ -366,7 +369,7 @@ def _optimal_with_estimates(xs, Ps, joint):
     return _optimal_fusion(as_estimates(xs, Ps), joint)
 
 
-OPTIMAL_REGISTRATION = dict(
+OPTIMAL_REGISTRATION: dict[str, Any] = dict(
     name="optimal",
     function=_optimal_with_estimates,
     core=_optimal_fusion,

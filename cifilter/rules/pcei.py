@@ -8,6 +8,10 @@ independent parts of the two inputs pass the chi-square test of having the same 
 (``docs/methods/ei.rst``).
 """
 
+from typing import Any
+
+from numpy.typing import ArrayLike
+
 from .._numerics.validation import check_int, check_scalar, restore_style
 from ..result import FusionResult
 from ._ellipsoidal import DEFAULT_EPS, check_options, check_pair, estimates_from_arguments
@@ -16,9 +20,11 @@ from ._pc_constraint import pc_fusion
 __all__ = ["pc_ellipsoidal_intersection"]
 
 
-def pc_ellipsoidal_intersection(xs, Ps, *args, alpha=0.05, eps=DEFAULT_EPS,
-                                mutual_mean="sijs-lazar", regularizer="information",
-                                tol=1e-9, max_iter=300):
+def pc_ellipsoidal_intersection(xs: ArrayLike, Ps: ArrayLike, *args: ArrayLike,
+                                alpha: float = 0.05, eps: float = DEFAULT_EPS,
+                                mutual_mean: str = "sijs-lazar",
+                                regularizer: str = "information", tol: float = 1e-9,
+                                max_iter: int = 300) -> FusionResult:
     """Fuse two estimates by probabilistically conservative Ellipsoidal Intersection.
 
     Starts from EI's common covariance ``C_EI`` (eq. (11)) and adds the ``S S^T`` of
@@ -152,7 +158,7 @@ def _pc_ellipsoidal_intersection(est, alpha=0.05, *, eps=DEFAULT_EPS, mutual_mea
     return FusionResult(restore_style(x, est.column), P, "pcei", None, gains, info)
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="pcei",
     function=pc_ellipsoidal_intersection,
     core=_pc_ellipsoidal_intersection,

@@ -14,7 +14,10 @@ Theorem 5 bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i`` (see
 ``docs/methods/pci.rst``), so it is a bound whatever rounding went into the gains.
 """
 
+from typing import Any, Union
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._numerics.information import (
     checked_cholesky,
@@ -46,7 +49,9 @@ __all__ = ["partial_ci"]
 _SOLVERS = ("newton", "alternating")
 
 
-def partial_ci(xs, Ps, rho, tol=1e-10, max_iter=100, *, solver="newton", delta=None):
+def partial_ci(xs: ArrayLike, Ps: ArrayLike, rho: ArrayLike, tol: float = 1e-10,
+               max_iter: int = 100, *, solver: str = "newton",
+               delta: Union[float, ArrayLike, None] = None) -> FusionResult:
     """Covariance Intersection for partially correlated estimates (Wu, Cai & Fu 2018).
 
     Fuses N estimates whose correlation coefficient bound is at most ``rho`` (eq. (8) for
@@ -281,7 +286,7 @@ def _pci_truth_options(joint, rng, count=2):
     return {"rho": _truth_rho(joint, count)[..., None]}
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="pci",
     function=partial_ci,
     core=_partial_ci,

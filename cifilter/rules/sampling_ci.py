@@ -11,7 +11,10 @@ ellipsoid must be to reach the intersection of the input ellipsoids along ``z``;
 ``1 / rho`` on all inputs. No guarantee: see ``docs/methods/sampling_ci.rst``.
 """
 
+from typing import Any, Optional, Union
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._numerics.information import information_factors, lower_inverse_stack, weighted_fusion
 from .._numerics.validation import as_estimates, as_rng, check_int, check_scalar, restore_style
@@ -24,7 +27,8 @@ DEFAULT_SEED = 0
 inputs, like every other fusion rule."""
 
 
-def sampling_ci(xs, Ps, samples=None, u=0.5, rng=None):
+def sampling_ci(xs: ArrayLike, Ps: ArrayLike, samples: Optional[int] = None, u: float = 0.5,
+                rng: Union[int, np.random.Generator, None] = None) -> FusionResult:
     """Sampling Covariance Intersection: the naive fusion scaled to reach the inputs' intersection.
 
     ``P = rho P_0`` and ``x = P_0 sum_i P_i^-1 x_i`` with ``P_0^-1 = sum_i P_i^-1`` (the
@@ -135,7 +139,8 @@ def _sampling_ci(est, samples=None, u=0.5, rng=None):
     largest = np.einsum("...ski,...ski->...sk", projected, projected).max(axis=-1)
     ratio = np.clip(np.einsum("...si,...si->...s", z, z) / largest, 1.0, float(count))
     r_min, r_max = ratio.min(axis=-1), ratio.max(axis=-1)
-    rho = u * r_min + (1.0 - u) * r_max
+    # the interpolation can round past an extreme (by 2 ulp where r_min == r_max): clip
+    rho = np.clip(u * r_min + (1.0 - u) * r_max, r_min, r_max)
     weights = np.broadcast_to((1.0 / rho)[..., None], est.batch_shape + (count,))
     fused = weighted_fusion(est.x, est.L, np.ascontiguousarray(weights), L_inv=L_inv)
     info = {"rule": "sampled", "rho": rho, "r_min": r_min, "r_max": r_max,
@@ -144,7 +149,7 @@ def _sampling_ci(est, samples=None, u=0.5, rng=None):
                         fused.gains, info, weights)
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="sci",
     function=sampling_ci,
     core=_sampling_ci,

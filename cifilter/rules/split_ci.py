@@ -8,7 +8,10 @@ update, zero independent parts Covariance Intersection. The numerics are in
 :mod:`cifilter.rules._split`; derivations in ``docs/methods/split_ci.rst``.
 """
 
+from typing import Any, Optional, Union
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._numerics.criteria import criterion_report, parse_criterion
 from .._numerics.validation import (
@@ -38,7 +41,9 @@ def _parts(P_ind, P_dep, name_ind, name_dep):
     return check_psd(P_ind, n, name_ind), check_psd(P_dep, n, name_dep)
 
 
-def split_covariance_intersection(xs, Ps_independent, Ps_dependent, H=None, criterion="det"):
+def split_covariance_intersection(xs: ArrayLike, Ps_independent: ArrayLike,
+                                  Ps_dependent: ArrayLike, H: Optional[ArrayLike] = None,
+                                  criterion: Union[str, ArrayLike] = "det") -> FusionResult:
     """Split Covariance Intersection of estimates with independent and dependent errors.
 
     Each estimate k has error covariance ``P_k = P_k_ind + P_k_dep``: the independent
@@ -288,7 +293,7 @@ def _split_ci_core(est, independent=None, criterion="det", omega=None):
     return _split_ci(est, P_ind, est.P - P_ind, criterion, omega)
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="split-ci",
     function=lambda xs, Ps, **options: _split_ci_core(as_estimates(xs, Ps), **options),
     core=_split_ci_core,

@@ -10,7 +10,10 @@ determinant or trace is chosen, and the mean ``u`` minimises that criterion. Der
 ``docs/methods/union.rst``.
 """
 
+from typing import Any, Optional
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .._numerics.validation import (
     as_estimates,
@@ -33,7 +36,8 @@ from ._union import (
 __all__ = ["covariance_union"]
 
 
-def covariance_union(xs, Ps, criterion="trace", mean=None):
+def covariance_union(xs: ArrayLike, Ps: ArrayLike, criterion: str = "trace",
+                     mean: Optional[ArrayLike] = None) -> FusionResult:
     """Covariance union: the smallest estimate whose covariance covers every input.
 
     Returns ``(u, U)`` with ``U >= P_i + (u - x_i)(u - x_i)^T`` for every input ``i``
@@ -194,7 +198,7 @@ def _covariance_union(est, criterion="trace", mean=None):
     return FusionResult(restore_style(np.array(u), est.column), U, "cu", None, None, info)
 
 
-REGISTRATION = dict(
+REGISTRATION: dict[str, Any] = dict(
     name="cu",
     function=covariance_union,
     core=_covariance_union,

@@ -163,3 +163,11 @@ def test_bad_estimates():
         sampling_ci([np.zeros(2)], [np.eye(2)])
     with pytest.raises(ValueError, match="not symmetric"):
         sampling_ci([np.zeros(2)] * 2, [np.eye(2), np.array([[1.0, 0.5], [0.0, 1.0]])])
+
+
+def test_rho_stays_between_the_extremes_when_they_nearly_coincide():
+    # one dimension: every direction gives the same ratio up to rounding (r_min and r_max
+    # 4 ulp apart); u r_min + (1 - u) r_max rounded above r_max here before it was clipped
+    r = sampling_ci([np.zeros(1), np.ones(1)], [np.array([[1.5]]), np.array([[1.0]])],
+                    samples=50, u=2.7747622030764872e-08, rng=1)
+    assert r.info["r_min"] <= r.info["rho"] <= r.info["r_max"]

@@ -7,11 +7,12 @@ A module defines ``DESCRIPTION`` (one line), ``add_arguments(parser)`` and ``run
 
 import importlib
 import pkgutil
+from types import ModuleType
 
 __all__ = ["available"]
 
 
-def available():
+def available() -> dict[str, ModuleType]:
     """The reproduction modules by name.
 
     Returns

@@ -15,7 +15,11 @@ some margin is below ``-Z`` standard errors, and otherwise ``inconclusive at thi
 the difference is within the Monte Carlo noise of the runs at hand.
 """
 
+from collections.abc import Iterable, Sequence
+from typing import Any, Optional, SupportsFloat, TextIO, Union
+
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = []
 
@@ -29,12 +33,12 @@ class Estimate:
 
     __slots__ = ("influence", "value")
 
-    def __init__(self, value, influence):
+    def __init__(self, value: SupportsFloat, influence: Optional[NDArray[Any]]) -> None:
         self.value = float(value)
         self.influence = influence  # ndarray (n,) or None for a constant
 
     @classmethod
-    def mean(cls, samples):
+    def mean(cls, samples: ArrayLike) -> "Estimate":
         """The mean of per-run samples (first axis: runs; further axes are averaged too)."""
         samples = np.asarray(samples, dtype=float)
         per_run = samples.reshape(len(samples), -1).mean(axis=1)
@@ -42,7 +46,7 @@ class Estimate:
         return cls(value, per_run - value)
 
     @property
-    def se(self):
+    def se(self) -> float:
         """The standard error (0 for a constant)."""
         if self.influence is None or len(self.influence) < 2:
             return 0.0
@@ -106,13 +110,13 @@ class Estimate:
         return self._lift(other) / self
 
 
-def mean_of(estimates):
+def mean_of(estimates: Iterable[Estimate]) -> Estimate:
     """The average of several estimates (e.g. over the points of a sweep)."""
     estimates = list(estimates)
     return sum(estimates[1:], estimates[0]) / len(estimates)
 
 
-def verdict(margins):
+def verdict(margins: Sequence[tuple[str, Estimate]]) -> tuple[str, str, Estimate, float]:
     """The verdict of a claim and the margin that decides it.
 
     Parameters
@@ -144,13 +148,18 @@ def verdict(margins):
 class Claims:
     """Prints each claim with the paper's statement, our numbers and the decisive margin."""
 
-    def __init__(self, out):
+    rows: list[tuple[str, str, str]]
+
+    def __init__(self, out: TextIO) -> None:
         self.out, self.rows = out, []
 
-    def add(self, where, text, paper, ours, margins):
+    def add(self, where: str, text: str, paper: str, ours: str,
+            margins: Sequence[Union[Estimate, tuple[str, Estimate]]]) -> str:
         """Judge and print one claim; ``margins`` as in :func:`verdict` (or bare estimates)."""
         margins = [m if isinstance(m, tuple) else (f"#{i}", m) for i, m in enumerate(margins)]
-        result, label, margin, z = verdict(margins)
+        # every item is a (label, estimate) pair now; mypy types the list by the parameter's
+        # declared type
+        result, label, margin, z = verdict(margins)  # type: ignore[arg-type]
         where_text = f" at {label}" if len(margins) > 1 else ""
         closest = ", the closest of " + str(len(margins)) if len(margins) > 1 else ""
         print(f"  [{result}] {text}\n      paper: {paper}\n      ours:  {ours}\n"
@@ -159,11 +168,11 @@ class Claims:
         self.rows.append((where, text, result))
         return result
 
-    def counts(self):
+    def counts(self) -> dict[str, int]:
         """``{verdict: number of claims}``."""
         return {v: sum(1 for *_, r in self.rows if r == v) for v in (HOLDS, FAILS, INCONCLUSIVE)}
 
-    def summary(self):
+    def summary(self) -> None:
         """The table of every claim and the counts of each verdict."""
         print("\n" + "=" * 100 + "\nSummary of the claims (a margin must exceed "
               f"{Z:g} standard errors; 'inconclusive' = within the Monte Carlo noise)",

@@ -5,9 +5,11 @@ the static example (eqs. 22-28) and of the dynamical example (eqs. 29-35, Figs. 
 to the paper's, and with ``--plot`` writes Figs. 3-8 as PNG files.
 """
 
+import argparse
 import os
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ...horizon import horizon_study, optimal_omega, propagate_bound, steady_state_covariance
 from ...rules.ci import covariance_intersection
@@ -24,7 +26,7 @@ MODELS = {"A": (np.array([[1.0, 0.0]]), 1.0), "B": (np.array([[0.0, 1.0]]), 3.0)
 R_STATIC = {"A": np.diag([1.0, 2.0]), "B": np.diag([2.0, 1.0])}
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``python -m cifilter reproduce ajgl``.
 
     Parameters
@@ -51,7 +53,7 @@ def add_arguments(parser):
                         help="largest horizon kappa of Figs. 3, 4, 6, 7 (default 50)")
 
 
-def local_bounds_at_zero():
+def local_bounds_at_zero() -> tuple[NDArray[np.float64], ...]:
     """MMSE bounds of filters A and B at k = 0 (P_0 = 10 I, one local measurement each).
 
     Returns
@@ -141,7 +143,7 @@ def _dynamic(horizons, at_steady_state):
     return PA, PB, studies
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Print the paper's numbers next to the computed ones; optionally draw Figs. 3-8.
 
     Parameters

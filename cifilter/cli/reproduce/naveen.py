@@ -11,9 +11,13 @@ ADDRESS`` on Dask, with the same numbers. Every EI variant of Table I sees the s
 sets, and every rule of Section V-B the same initial estimates.
 """
 
+import argparse
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, Literal, Optional, Union
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
 from ..._numerics.validation import as_rng, check_int
@@ -47,7 +51,11 @@ VARIANTS = (  # (mutual_mean, regularizer, eps)
 
 
 # --------------------------------------------------------------------------- Section III
-def case_one(alpha, *, mutual_mean="sijs-lazar", eps=0.01, regularizer="covariance"):
+def case_one(alpha: Optional[float], *,
+             mutual_mean: Literal["sijs-lazar", "as-printed"] = "sijs-lazar",
+             eps: float = 0.01,
+             regularizer: Literal["covariance", "information"] = "covariance",
+             ) -> dict[str, Any]:
     """Section III, case 1: two 1-D inputs with variance 1 and means +1 and -1.
 
     Parameters
@@ -75,7 +83,7 @@ def case_one(alpha, *, mutual_mean="sijs-lazar", eps=0.01, regularizer="covarian
     ([101.0, -101.0], [101.0, 101.0])
     """
     args = ([1.0], [[1.0]], [-1.0], [[1.0]])
-    options = dict(eps=eps, mutual_mean=mutual_mean, regularizer=regularizer)
+    options: dict[str, Any] = dict(eps=eps, mutual_mean=mutual_mean, regularizer=regularizer)
     if alpha is None:
         r = ellipsoidal_intersection(*args, **options)
     else:
@@ -87,7 +95,10 @@ def case_one(alpha, *, mutual_mean="sijs-lazar", eps=0.01, regularizer="covarian
                 "independent_P": 1.0 / A, "P": float(r.P[0, 0]), "psi": float(r.info["psi"])}
 
 
-def case_two(C_a, alpha, *, mutual_mean, eps=0.01, regularizer="covariance"):
+def case_two(C_a: ArrayLike, alpha: Optional[float], *,
+             mutual_mean: Literal["sijs-lazar", "as-printed"], eps: float = 0.01,
+             regularizer: Literal["covariance", "information"] = "covariance",
+             ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Fig. 2: ``C_b = 1``, means +1 and -1, sweep over ``C_a`` (batched).
 
     Returns the common variance, the two independent means and the fused variance.
@@ -96,7 +107,7 @@ def case_two(C_a, alpha, *, mutual_mean, eps=0.01, regularizer="covariance"):
     size = C_a.size
     xa, xb = np.ones((size, 1)), -np.ones((size, 1))
     Pa, Pb = C_a.reshape(size, 1, 1), np.ones((size, 1, 1))
-    options = dict(eps=eps, mutual_mean=mutual_mean, regularizer=regularizer)
+    options: dict[str, Any] = dict(eps=eps, mutual_mean=mutual_mean, regularizer=regularizer)
     if alpha is None:
         r = ellipsoidal_intersection(xa, Pa, xb, Pb, **options)
     else:
@@ -122,9 +133,9 @@ class InputSets:
         The joint error covariance (cross-covariance ``C_a C_c^-1 C_b``).
     """
 
-    x: np.ndarray
-    P: np.ndarray
-    joint: np.ndarray
+    x: NDArray[np.float64]
+    P: NDArray[np.float64]
+    joint: NDArray[np.float64]
 
 
 def _inverse_wishart(dof, size, n, rng):
@@ -132,7 +143,8 @@ def _inverse_wishart(dof, size, n, rng):
     return np.asarray(sample).reshape((size, n, n))
 
 
-def input_sets(dof, sets, rng=None, *, draws=1, n=2):
+def input_sets(dof: float, sets: int, rng: Optional[Union[int, np.random.Generator]] = None, *,
+               draws: int = 1, n: int = 2) -> InputSets:
     """Section V-A: common and independent parts from an inverse Wishart, inputs by eq. (6).
 
     ``C_a\\c``, ``C_b\\c`` and ``C_c`` are drawn from an inverse Wishart distribution with
@@ -194,8 +206,12 @@ def _fuse_sets(s, alpha, mutual_mean, regularizer, eps):
     return pc_ellipsoidal_intersection(s.x, s.P, alpha=alpha, **options)
 
 
-def table_one(dofs=(2, 10, 100), sets=35, rng=None, *, mutual_mean="as-printed",
-              regularizer="covariance", eps=0.01, alphas=(0.05, 0.01), draws=1):
+def table_one(dofs: Sequence[float] = (2, 10, 100), sets: int = 35,
+              rng: Optional[Union[int, np.random.Generator]] = None, *,
+              mutual_mean: Literal["sijs-lazar", "as-printed"] = "as-printed",
+              regularizer: Literal["covariance", "information"] = "covariance",
+              eps: float = 0.01, alphas: Sequence[float] = (0.05, 0.01),
+              draws: int = 1) -> dict[float, dict[str, Any]]:
     """Table I: average fused determinant and MSE against the optimal fusion.
 
     Parameters
@@ -235,7 +251,7 @@ def table_one(dofs=(2, 10, 100), sets=35, rng=None, *, mutual_mean="as-printed",
     (['EI', 0.05, 0.01], True)
     """
     rng = as_rng(rng)
-    results = {}
+    results: dict[float, dict[str, Any]] = {}
     for dof in dofs:
         s = input_sets(dof, sets, rng, draws=draws)
         per_set = _table_one_per_set(s, mutual_mean, regularizer, eps, alphas)
@@ -310,7 +326,10 @@ def _table_one_row(per_set, alphas):
 
 
 # --------------------------------------------------------------------------- Section V-B
-def network(method, rounds=25, runs=1, rng=None, *, dof=30, edges=NETWORK_EDGES, **options):
+def network(method: Literal["ei", "pcei"], rounds: int = 25, runs: int = 1,
+            rng: Optional[Union[int, np.random.Generator]] = None, *, dof: float = 30,
+            edges: Sequence[tuple[int, int]] = NETWORK_EDGES,
+            **options: Any) -> dict[str, NDArray[np.float64]]:
     """Section V-B: repeated pairwise fusion along every edge of a six-node network.
 
     Each node starts with an independent estimate (covariance from an inverse Wishart with
@@ -388,7 +407,7 @@ ALPHAS = (0.05, 0.01)
 # network are batched over 20 networks (more runs than that spread over workers).
 TABLE_ONE_CHUNK = 18
 NETWORK_CHUNK = 20
-NETWORK_METHODS = (
+NETWORK_METHODS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("EI", "ei", {}),
     ("PC sijs-lazar", "pcei", {"alpha": 0.05}),
     ("PC as-printed", "pcei", {"alpha": 0.05, "mutual_mean": "as-printed"}),
@@ -397,7 +416,7 @@ NETWORK_METHODS = (
 NETWORK_SEED_KEY = len(TABLE_ONE_DOFS)  # Table I's studies use keys 0, 1, 2 (one per dof)
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``python -m cifilter reproduce naveen``.
 
     Parameters
@@ -668,7 +687,7 @@ def _figures(directory, table, networks):
     print(f"\nfigures written to {directory}: naveen_fig2.png, naveen_fig4.png, naveen_fig6.png")
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Run the reproduction and print every number next to the paper's.
 
     Parameters

@@ -30,9 +30,11 @@ import argparse
 import sys
 import time
 import zlib
-from typing import NamedTuple
+from collections.abc import Sequence
+from typing import Any, NamedTuple, Optional, TextIO, Union
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..._numerics.validation import as_rng, check_int, check_scalar
 from ...rules.bayes import bayesian_fusion
@@ -100,10 +102,10 @@ class FusionData(NamedTuple):
     (4, 6, 6)
     """
 
-    xs: np.ndarray
-    Ps: np.ndarray
-    joint: np.ndarray
-    x0: np.ndarray
+    xs: NDArray[np.float64]
+    Ps: NDArray[np.float64]
+    joint: NDArray[np.float64]
+    x0: NDArray[np.float64]
 
 
 def _wishart(rng, dof, scale, dim, shape):
@@ -117,7 +119,9 @@ def _diagonal_blocks(joint, k):
                      for i in range(k)], axis=-3)
 
 
-def simulate_kalman_model(k, sigma0_sq, sigma_sq, runs, rng=None, data_dof=3):
+def simulate_kalman_model(k: int, sigma0_sq: float, sigma_sq: float, runs: int,
+                          rng: Optional[Union[int, np.random.Generator]] = None,
+                          data_dof: int = 3) -> FusionData:
     """Simulate the distributed Kalman filter model (conference Sec. 5; journal model 2).
 
     ``Sigma_0 ~ W_2(data_dof, sigma0_sq I)``, ``Sigma_i ~ W_2(data_dof, sigma_sq I)``,
@@ -183,7 +187,9 @@ def simulate_kalman_model(k, sigma0_sq, sigma_sq, runs, rng=None, data_dof=3):
     return FusionData(xs, _diagonal_blocks(joint, k), joint, x0)
 
 
-def simulate_wishart_model(k, sigma_sq, runs, rng=None, data_dof=None):
+def simulate_wishart_model(k: int, sigma_sq: float, runs: int,
+                           rng: Optional[Union[int, np.random.Generator]] = None,
+                           data_dof: Optional[int] = None) -> FusionData:
     """Simulate the journal's model 1: a Wishart joint covariance, zero state.
 
     ``P_x ~ W_2k(data_dof, sigma_sq I)`` with ``data_dof = 3k`` by default and the
@@ -234,7 +240,9 @@ def simulate_wishart_model(k, sigma_sq, runs, rng=None, data_dof=None):
                       np.zeros((runs, DIM)))
 
 
-def compare_estimators(data, samples=100, dof=None, rng=None, estimators=ESTIMATORS):
+def compare_estimators(data: FusionData, samples: int = 100, dof: Optional[float] = None,
+                       rng: Optional[Union[int, np.random.Generator]] = None,
+                       estimators: Sequence[str] = ESTIMATORS) -> dict[str, NDArray[np.float64]]:
     """Fuse every run of an experiment with each estimator (one batched call per estimator).
 
     Parameters
@@ -300,8 +308,10 @@ def _mse(fused, target):
     return {name: float(np.mean(np.sum((x - target) ** 2, axis=-1))) for name, x in fused.items()}
 
 
-def repeated_fusion_nees(rounds=5, nodes=4, runs=2000, samples=100, rng=None,
-                         estimators=("bayes", "ci-trace", "ci-fast", "naive")):
+def repeated_fusion_nees(rounds: int = 5, nodes: int = 4, runs: int = 2000, samples: int = 100,
+                         rng: Optional[Union[int, np.random.Generator]] = None,
+                         estimators: Sequence[str] = ("bayes", "ci-trace", "ci-fast", "naive"),
+                         ) -> dict[str, NDArray[np.float64]]:
     """Mean NEES when the nodes of a ring fuse with their neighbours round after round.
 
     The k nodes' errors have the joint covariance ``P_x ~ W_2k(3k, I)`` (the journal's
@@ -474,7 +484,7 @@ def _span(values):
     return f"{values.min():.3f} to {values.max():.3f}"
 
 
-def _fmt(values):
+def _fmt_floats(values):
     return ", ".join(f"{v:.3f}" for v in _floats(values))
 
 
@@ -653,7 +663,7 @@ def _model2(args, results, claims, out, figures):
                 claims.add(f"model 2 Fig. {'7' if fig == '6' else '8'}, k = {k}, vs {target}",
                            f"normalised MSE {trend}",
                            "better with increasing sigma^2, worse with increasing sigma0^2",
-                           f"Bayesian / optimal = {_fmt(norm)}", steps)
+                           f"Bayesian / optimal = {_fmt_floats(norm)}", steps)
         for fig in ("5", "6"):
             axis_name = sweeps[(fig, 2)][0]
             n2 = _ratios(sweeps[(fig, 2)][2], "bayes", "optimal", target)
@@ -661,7 +671,7 @@ def _model2(args, results, claims, out, figures):
             claims.add(f"model 2 Figs. 7-8 ({axis_name}), vs {target}",
                        "normalised MSE worse for three nodes",
                        "deteriorates with the increase in the number of nodes",
-                       f"k = 2: {_fmt(n2)}; k = 3: {_fmt(n3)}",
+                       f"k = 2: {_fmt_floats(n2)}; k = 3: {_fmt_floats(n3)}",
                        _labelled(axis_name, GRID, [b - a for a, b in zip(n2, n3)]))
     figures.append(("model2", {f"Fig. {fig}, k = {k}": sweep
                                for (fig, k), sweep in sweeps.items()}))
@@ -694,7 +704,7 @@ def _nodes(args, results, claims, out, figures):
         n2 = _ratios(sweeps["kalman"][2], "bayes", "optimal", target)
         claims.add(f"Fig. 9, model 2 vs {target}", "Bayesian works better in model 2",
                    "the proposed algorithm works better in model 2",
-                   f"Bayesian / optimal: model 1 {_fmt(n1)}; model 2 {_fmt(n2)}",
+                   f"Bayesian / optimal: model 1 {_fmt_floats(n1)}; model 2 {_fmt_floats(n2)}",
                    _labelled("k", NODES, [a - b for a, b in zip(n1, n2)]))
     figures.append(("nodes", {f"Fig. 9, model {1 if model == 'wishart' else 2}": sweep
                               for model, sweep in sweeps.items()}))
@@ -814,7 +824,7 @@ def _nees(args, client, claims, out, figures):
                 ("CI last round within 5% of round 1", 1.05 * ci[1] - ci[-1])]
     claims.add("repeated fusion", "Bayesian NEES grows round after round, CI's does not",
                "multiple fusions lead to overconfident estimation; CI stays the same",
-               f"Bayesian {_fmt(bayes)}; CI trace {_fmt(ci)}", margins)
+               f"Bayesian {_fmt_floats(bayes)}; CI trace {_fmt_floats(ci)}", margins)
     figures.append(("nees", {name: _floats(values) for name, values in nees.items()}))
 
 
@@ -883,7 +893,7 @@ def _section_list(text):
     return names
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``python -m cifilter reproduce weng``.
 
     Parameters
@@ -917,7 +927,7 @@ def add_arguments(parser):
     add_common_arguments(parser, "write PNG figures (weng_*.png) to DIR")
 
 
-def run(args, out=None):
+def run(args: argparse.Namespace, out: Optional[TextIO] = None) -> int:
     """Run the selected sections and print every number next to the papers' statements.
 
     Parameters
@@ -935,9 +945,10 @@ def run(args, out=None):
     """
     out = sys.stdout if out is None else out
     sections = args.only if isinstance(args.only, list) else _section_list(args.only)
+    figures: list[tuple[str, Any]]
     claims, figures = Claims(out), []
     start = time.perf_counter()
-    seconds = []
+    seconds: Union[list[float], NDArray[np.float64]] = []
     with parallel_client(args) as client:
         results = {}
         if "conference" in sections:

@@ -3,6 +3,7 @@
 ``python -m cifilter reproduce wu`` prints every reproduced number next to the paper's.
 """
 
+import argparse
 import time
 
 import numpy as np
@@ -23,7 +24,7 @@ EXAMPLE_3_CASES = ((2, 4.0, 0.5), (3, 2.0, 0.2), (3, 10.0, 0.9), (4, 5.0, 0.0), 
                    (10, 100.0, 0.3))
 
 
-def add_arguments(parser):
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``python -m cifilter reproduce wu``."""
     parser.add_argument("--instances", type=positive_int, default=200,
                         help="random problems per setting for the iteration counts "
@@ -179,7 +180,7 @@ def _iterations(rng, instances):
           "  need tens to thousands of iterations (5000 = the limit was hit).")
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     """Print the reproduction; returns 0."""
     rng = np.random.default_rng(args.seed)
     print("Wu, Cai & Fu, 'Covariance intersection for partially correlated random vectors', "
