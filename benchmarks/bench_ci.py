@@ -186,7 +186,7 @@ def main():
 
     # what bounds the batched call: the front door's validation, and the kernel alone
     validation, est = best_of(args.repeats, lambda: as_estimates(xs, Ps))
-    from cifilter import _kernels_ci
+    from cifilter._kernels import compiled as _kernels_ci
 
     size, n = args.pairs, 4
     outs = [np.empty(size), np.zeros(size, dtype=int), np.empty(size), np.empty((size, n)),

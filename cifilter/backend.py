@@ -4,7 +4,8 @@ Batched Covariance Intersection (optimal, given and fast weights) and the naive 
 have two implementations with the same contracts (the same validation and error messages,
 conditioning contract, certified gaps, ``converged`` flags and ``info`` keys, results equal
 to rounding): vectorised numpy, always available, and compiled kernels
-(``numba``, the optional extra ``pip install cifilter[fast]``), parallel over the batch.
+(``numba``, the optional extra: ``pip install ".[fast]"`` from a clone,
+``pip install "cifilter-fusion[fast]"`` once published), parallel over the batch.
 
 ``"auto"`` (the default) uses the kernels when numba is installed and the validated inputs
 (float64) are a batch of at least :data:`AUTO_MIN_BATCH` problems; ``"numpy"`` never does;
@@ -43,7 +44,8 @@ def _check(name):
                          f"got {name!r}")
     if name == "numba" and not numba_available():
         raise ValueError("backend 'numba' needs the numba package "
-                         "(pip install cifilter[fast]), which is not installed")
+                         "(from a clone: pip install \".[fast]\"; once published: pip install "
+                         "\"cifilter-fusion[fast]\"), which is not installed")
     return name
 
 

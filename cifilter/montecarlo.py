@@ -9,7 +9,7 @@ runs the chunks (here, or on ``dask.distributed`` workers) and concatenates thei
 in chunk order. The numbers therefore depend on ``seed`` and ``chunk_size`` only, never on
 the number of workers or the order in which chunks finish.
 
-Dask is optional (``pip install cifilter[distributed]``) and imported only when a cluster
+Dask is optional (``pip install ".[distributed]"`` from a clone) and imported only when a cluster
 is asked for.
 """
 
@@ -48,7 +48,8 @@ _LOCAL_WORKER_CONFIG = {
 
 _INSTALL_HINT = (
     "running Monte Carlo chunks on Dask needs dask.distributed: "
-    "pip install cifilter[distributed]"
+    "python -m pip install \".[distributed]\" from a clone of cifilter (once published: "
+    "pip install \"cifilter-fusion[distributed]\"; the PyPI project named cifilter is unrelated)"
 )
 
 

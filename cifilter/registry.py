@@ -313,7 +313,10 @@ def get_method(name: str) -> FusionMethod:
     Raises
     ------
     ValueError
-        If no rule of that name is registered; the message lists the registered names.
+        If no rule of that name is registered; the message lists the registered names, or
+        says that none are and why (most likely a directory named ``cifilter`` without
+        ``__init__.py`` on ``sys.path``, for instance in the current folder, imported as a
+        namespace package in place of this one; the message gives its path).
 
     Examples
     --------
@@ -324,10 +327,34 @@ def get_method(name: str) -> FusionMethod:
     try:
         return _REGISTRY[name]
     except (KeyError, TypeError):
+        if not _REGISTRY:
+            raise ValueError(f"unknown fusion method {name!r}: no fusion methods are "
+                             f"registered; {_why_empty()}") from None
         known = ", ".join(repr(m) for m in _REGISTRY)
         raise ValueError(
             f"unknown fusion method {name!r}; registered methods are {known}"
         ) from None
+
+
+def _why_empty():
+    """Why the registry is empty: most likely a directory named ``cifilter`` without an
+    ``__init__.py`` (an empty folder, or one holding a clone) in the current folder or
+    elsewhere on ``sys.path``, which Python imports as a namespace package instead of
+    this package, so ``cifilter/__init__.py`` (which registers the built-in rules by
+    importing :mod:`cifilter.rules`) never runs."""
+    import sys
+
+    package = sys.modules.get(__name__.rpartition(".")[0])
+    if package is not None and getattr(package, "__file__", None) is None:
+        paths = ", ".join(repr(str(p)) for p in getattr(package, "__path__", ()))
+        return (f"'import cifilter' found the namespace package at {paths} (a directory "
+                "named 'cifilter' without __init__.py, for instance an empty folder or one "
+                "holding a clone) instead of the installed package, so cifilter/__init__.py, "
+                "which registers the built-in rules, never ran. Rename or move that "
+                "directory, or run from another folder")
+    return ("the built-in rules are registered when the package is imported "
+            "('import cifilter' runs cifilter/__init__.py, which imports cifilter.rules); "
+            "this registry module was imported without it")
 
 
 def _check_options(record, options):

@@ -13,7 +13,7 @@ cifilter, with optimal weights:
   and cifilter's ``(x, P)``; particle, ensemble and mixture states are moment-matched and
   say so with a :class:`MomentMatchedWarning`.
 
-Stone Soup is an optional dependency (``pip install cifilter[stonesoup]``): ``import
+Stone Soup is an optional dependency (``pip install ".[stonesoup]"`` from a clone): ``import
 cifilter`` never imports it; this module does.
 """
 
@@ -48,10 +48,13 @@ try:
 except ImportError as error:  # pragma: no cover - exercised only without Stone Soup
     raise ImportError(
         "cifilter.stonesoup needs Stone Soup, which is not installed: "
-        "pip install cifilter[stonesoup]"
+        "python -m pip install \".[stonesoup]\" from a clone of cifilter (once published: "
+        "pip install \"cifilter-fusion[stonesoup]\"; the PyPI project named cifilter is "
+        "unrelated)"
     ) from error
 
 from ._numerics.criteria import parse_criterion
+from ._numerics.validation import as_float_array, check_covariances, check_finite
 from .registry import fuse, get_method
 from .result import FusionResult
 
@@ -145,14 +148,18 @@ def to_estimate(state: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     x : ndarray, shape (n,)
         The mean (a new array).
     P : ndarray, shape (n, n)
-        The covariance (a new array, not validated here: the fusion functions validate it).
+        The covariance (a new array with the state's values; validated as
+        :func:`cifilter.fuse` validates it, not symmetrised).
 
     Raises
     ------
     TypeError
         ``state`` is not a Stone Soup state with a mean and a covariance.
     ValueError
-        An empty track or mixture, or mixture weights that do not sum to a positive number.
+        An empty track or mixture, mixture weights that do not sum to a positive number, a
+        mean that is not finite, or a covariance that is not finite, square, symmetric (to
+        a relative 1e-8, as :func:`cifilter.fuse` checks) and positive definite (the
+        message names the state's type).
 
     Warns
     -----
@@ -173,22 +180,39 @@ def to_estimate(state: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     ([1.0, 2.0], [[3.0, 0.0], [0.0, 4.0]])
     """
     state = _latest_state(state)
+    kind = type(state).__name__
     if isinstance(state, GaussianMixture):
         mean, covar = _mixture_moments(state)
+        _check_estimate(mean, covar, f"the {kind}'s mean", f"the {kind}'s covariance")
         _warn_moment_matched(f"a GaussianMixture of {len(state.components)} components")
         return mean, covar
     if isinstance(state, _EXACT_GAUSSIANS):
-        return (np.array(state.mean, dtype=float).reshape(-1),
-                np.array(state.covar, dtype=float))
+        mean = np.array(state.mean, dtype=float).reshape(-1)
+        covar = np.array(state.covar, dtype=float)
+        _check_estimate(mean, covar, f"the {kind}'s mean", f"the {kind}'s covar")
+        return mean, covar
     if isinstance(state, _SAMPLED):
         mean = np.array(state.mean, dtype=float).reshape(-1)
         covar = np.array(state.covar, dtype=float).reshape(mean.size, mean.size)
-        _warn_moment_matched(f"a {type(state).__name__}")
+        _check_estimate(mean, covar, f"the {kind}'s mean", f"the {kind}'s covar")
+        _warn_moment_matched(f"a {kind}")
         return mean, covar
     raise TypeError(
         "state must be a Stone Soup Gaussian, particle, ensemble or Gaussian mixture state "
-        f"(or a Track of them), got {type(state).__name__}"
+        f"(or a Track of them), got {kind}"
     )
+
+
+def _check_estimate(x, P, x_name, P_name):
+    """Validate a mean (n,) and its covariance (n, n) as :func:`cifilter.fuse` does: finite,
+    square, of matching size, symmetric and positive definite (``x`` and ``P`` unchanged)."""
+    check_finite(x, x_name)
+    if P.ndim != 2 or P.shape[0] != P.shape[1]:
+        raise ValueError(f"{P_name} must be one square matrix (n, n), got shape {P.shape}")
+    if P.shape[0] != x.size:
+        raise ValueError(f"{P_name} has shape {P.shape}, which does not match {x_name} of "
+                         f"{x.size} entries")
+    check_covariances(P, P_name)
 
 
 def _warn_moment_matched(what):
@@ -219,7 +243,11 @@ def to_gaussian_state(x: Union[ArrayLike, FusionResult], P: Optional[ArrayLike] 
     Raises
     ------
     ValueError
-        ``P`` missing, shapes that do not match, or a batched result.
+        ``P`` missing, shapes that do not match, a batched result, an ``x`` that is not
+        finite, or a ``P`` that is not finite, symmetric and positive definite (validated
+        as :func:`cifilter.fuse` validates a covariance).
+    TypeError
+        Entries that are not real numbers.
 
     See Also
     --------
@@ -242,13 +270,14 @@ def to_gaussian_state(x: Union[ArrayLike, FusionResult], P: Optional[ArrayLike] 
         x = x.x
     if P is None:
         raise ValueError("P is required unless x is a FusionResult")
-    P = np.array(P, dtype=float)
-    x = np.array(x, dtype=float)
+    P = as_float_array(P, "P")
+    x = as_float_array(x, "x")
     if P.ndim != 2 or P.shape[0] != P.shape[1]:
         raise ValueError(f"P must be one square matrix (n, n), got shape {P.shape}")
     if x.shape not in ((P.shape[0],), (P.shape[0], 1)):
         raise ValueError(
             f"x must have shape ({P.shape[0]},) or ({P.shape[0]}, 1) to match P, got {x.shape}")
+    _check_estimate(x.reshape(-1), P, "x", "P")
     return GaussianState(StateVector(x.reshape(-1, 1)), CovarianceMatrix(P),
                          timestamp=timestamp)
 
@@ -329,7 +358,8 @@ class FusionUpdater(Updater):
 
     :meth:`predict_measurement` gives the innovation covariance the gaters and
     hypothesisers use. With a fixed ``omega`` it is Clark & Campbell's
-    :math:`V = A/(1-\omega) + B/\omega`, as ``ChernoffUpdater`` computes it. With optimal
+    :math:`V = A/(1-\omega) + B/\omega`, computed as ``ChernoffUpdater`` computes it
+    (``1/(1-omega)*A + 1/omega*B``, so the two are bitwise equal). With optimal
     weights it is the member of the same family :math:`A/(1-\theta) + B/\theta` that is
     smallest under ``criterion`` (every member bounds the covariance of :math:`a - b` for
     any correlation of the two errors; the fusion's own ``omega`` may be 0 or 1, where
@@ -483,9 +513,13 @@ class FusionUpdater(Updater):
         name, _ = self._rule()
         if name == "naive":
             V = A + B
+        elif self.omega is not None:
+            # As ChernoffUpdater computes it, multiplying by the reciprocals (A / (1 - w)
+            # rounds differently, by up to an ulp): the drop-in is bitwise equal at fixed w.
+            w = float(self.omega)
+            return 1 / (1 - w) * A + 1 / w * B
         else:
-            w = float(self.omega) if self.omega is not None else _gate_omega(
-                A, B, self.criterion)
+            w = _gate_omega(A, B, self.criterion)
             V = A / (1 - w) + B / w
         return (V + V.T) / 2
 

@@ -41,3 +41,13 @@ def ci_backend(request):
     """Run the test under each backend of :mod:`cifilter.backend` (the parameter)."""
     with cifilter.use_backend(request.param):
         yield request.param
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """Keep nbmake's closing advertisement out of the output (its summary hook prints only
+    that line when ``--nbmake`` is on; failures are reported by pytest as usual)."""
+    nbmake = getattr(config.option, "nbmake", None)
+    config.option.nbmake = False
+    yield
+    config.option.nbmake = nbmake

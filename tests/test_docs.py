@@ -5,6 +5,7 @@ import importlib
 import inspect
 import os
 import pkgutil
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -71,6 +72,39 @@ def test_sphinx_site_builds_without_warnings(tmp_path):
     for name in notebooks:
         assert (tmp_path / "html" / "tutorials" / f"{name}.html").is_file(), name
         assert f'href="tutorials/{name}.html"' in tutorials, name
+    check_offline_site(tmp_path / "html")
+
+
+REMOTE = re.compile(r"""<(?:script|link|img|iframe)\b[^>]*\b(?:src|href)=["'](?:https?:)?//""",
+                    re.IGNORECASE)
+
+
+def check_offline_site(html):
+    """The pages work without the network: no page loads a script, style sheet, image or
+    frame from another host, and the maths is rendered by a local MathJax copy."""
+    pages = sorted(html.rglob("*.html"))
+    assert pages
+    remote = [f"{page.relative_to(html)}: {match.group(0)}" for page in pages
+              for match in REMOTE.finditer(page.read_text(encoding="utf-8"))]
+    assert not remote, "remote references:\n" + "\n".join(remote[:20])
+    # a page with maths loads MathJax from _static/ and has the maths markup to render
+    ci = (html / "methods" / "ci.html").read_text(encoding="utf-8")
+    assert re.search(r'<script[^>]*src="\.\./_static/mathjax/tex-chtml\.js', ci)
+    assert r"\(" in ci or r"\[" in ci  # MathJax's delimiters around the equations
+    mathjax = html / "_static" / "mathjax"
+    assert (mathjax / "tex-chtml.js").stat().st_size > 500_000  # the real MathJax bundle
+    assert any((mathjax / "output" / "chtml" / "fonts" / "woff-v2").glob("*.woff"))
+
+
+@pytest.mark.parametrize("page, offending", [
+    ('<script src="https://cdn.jsdelivr.net/npm/mathjax@3/es5/tex-mml-chtml.js">', True),
+    ("<script defer src='//cdn.example.org/x.js'>", True),
+    ('<link rel="stylesheet" href="http://fonts.example.org/a.css">', True),
+    ('<script src="_static/mathjax/tex-chtml.js">', False),
+    ('<a href="https://stonesoup.readthedocs.io">Stone Soup</a>', False),  # a link to follow
+])
+def test_remote_reference_pattern(page, offending):
+    assert bool(REMOTE.search(page)) is offending
 
 
 def test_code_is_ruff_clean():

@@ -163,11 +163,14 @@ def test_dask_client_argument_errors(kwargs, problem):
             pass
 
 
+DASK_HINT = r'pip install "\.\[distributed\]" from a clone.*"cifilter-fusion\[distributed\]"'
+
+
 def test_missing_dask_gives_an_install_hint(monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # import now raises ImportError
-    with pytest.raises(ImportError, match=r"pip install cifilter\[distributed\]"):
+    with pytest.raises(ImportError, match=DASK_HINT):
         montecarlo.run(gaussian_study, 10, client="tcp://127.0.0.1:1", progress=False)
-    with pytest.raises(ImportError, match=r"pip install cifilter\[distributed\]"):
+    with pytest.raises(ImportError, match=DASK_HINT):
         with montecarlo.dask_client(workers=1):
             pass
 

@@ -295,3 +295,40 @@ def test_fuse_horizon_errors_are_named(kwargs, error, message):
         kwargs["model"] = _model()
     with pytest.raises(error, match=message):
         fuse(_pair(), **kwargs)
+
+
+@pytest.mark.parametrize("layout", ["empty", "clone"])
+def test_a_shadowing_directory_is_named_when_no_rules_are_registered(tmp_path, layout):
+    """Issue 21, item 11: run from a folder holding a directory ``cifilter`` without
+    ``__init__.py`` (empty, or a clone), ``import cifilter`` is a namespace package and the
+    registry is empty; the error says so and names the directory."""
+    import os
+    import subprocess
+    import sys
+
+    shadow = tmp_path / "cifilter"
+    shadow.mkdir()
+    if layout == "clone":
+        (shadow / "pyproject.toml").write_text("[project]\nname = 'cifilter'\n")
+        (shadow / "cifilter").mkdir()
+        (shadow / "cifilter" / "__init__.py").write_text("")
+    code = ("import numpy as np\n"
+            "from cifilter.registry import fuse\n"
+            "fuse([(np.zeros(2), np.eye(2))] * 2, method='ci')\n")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    run = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 1
+    last = run.stderr.strip().splitlines()[-1]
+    assert last.startswith("ValueError: unknown fusion method 'ci': no fusion methods are "
+                           "registered;")
+    assert "namespace package" in last
+    assert repr(str(shadow)) in last
+    assert "registered methods are" not in last
+
+
+def test_an_empty_registry_says_why(monkeypatch):
+    monkeypatch.setattr(registry_module, "_REGISTRY", {})
+    with pytest.raises(ValueError, match=r"no fusion methods are registered; the built-in "
+                                         r"rules are registered when the package is imported"):
+        get_method("ci")

@@ -81,7 +81,8 @@ def test_stonesoup_is_optional():
             "try:\n    import cifilter.stonesoup\nexcept ImportError as e:\n    print(e)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=120).stdout
-    assert "pip install cifilter[stonesoup]" in out
+    assert 'pip install ".[stonesoup]" from a clone' in out
+    assert '"cifilter-fusion[stonesoup]"' in out
 
 
 # -------------------------------------------------------------- FusionUpdater vs Chernoff
@@ -107,6 +108,54 @@ def test_fixed_omega_equals_chernoff_updater(omega, seed):
         assert np.allclose(V.covar, W.covar, rtol=1e-12)
         assert np.allclose(V.state_vector, W.state_vector)
         assert np.allclose(V.cross_covar, W.cross_covar)
+
+
+# Stone Soup's own test of ChernoffUpdater (stonesoup/updater/tests/test_chernoff.py, not
+# shipped in the wheel): its prediction and detection, with the noise covariance made a
+# well-formed 2x2 matrix (the test gives np.array([[0.04, 0.04]]), a 1x2 array).
+SS_PREDICTION = (np.array([[-6.45], [0.7]]), np.array([[4.1123, 0.0013], [0.0013, 0.0365]]))
+SS_DETECTION = (np.array([[-6.23], [0.83]]), np.diag([0.75, 1.2]))
+SS_NOISE = np.diag([0.04, 0.04])
+
+
+@pytest.mark.parametrize("omega", [0.05, 0.1, 0.2, 0.25, 0.3, 0.5, 0.77, 0.95])
+def test_predict_measurement_is_bitwise_chernoff_on_stonesoups_test_inputs(omega):
+    """At a fixed omega the innovation covariance is ChernoffUpdater's, bit for bit (A/(1-w)
+    and 1/(1-w)*A differ by an ulp at omega = 0.05, 0.1, 0.2, 0.25, 0.77 and 0.95)."""
+    model = LinearGaussian(ndim_state=2, mapping=[0, 1], noise_covar=SS_NOISE)
+    prediction = GaussianStatePrediction(*SS_PREDICTION)
+    ours = FusionUpdater(measurement_model=model, omega=omega).predict_measurement(prediction)
+    theirs = ChernoffUpdater(measurement_model=model, omega=omega).predict_measurement(
+        prediction)
+    assert np.array_equal(np.asarray(ours.covar), np.asarray(theirs.covar))
+    assert np.array_equal(np.asarray(ours.state_vector), np.asarray(theirs.state_vector))
+    assert np.array_equal(np.asarray(ours.cross_covar), np.asarray(theirs.cross_covar))
+    # Stone Soup's own expectations of the test, at its tolerance (atol 1e-14)
+    innovation = 1 / (1 - omega) * model.noise_covar + 1 / omega * prediction.covar
+    assert np.allclose(ours.covar, innovation, 0, atol=1e-14)
+    detection = GaussianDetection(state_vector=SS_DETECTION[0], covar=SS_DETECTION[1],
+                                  measurement_model=model)
+    posterior = FusionUpdater(measurement_model=model, omega=omega).update(
+        SingleHypothesis(prediction=prediction, measurement=detection))
+    A_inv, B_inv = np.linalg.inv(SS_DETECTION[1]), np.linalg.inv(SS_PREDICTION[1])
+    covar = np.linalg.inv(omega * A_inv + (1 - omega) * B_inv)
+    mean = covar @ (omega * A_inv @ SS_DETECTION[0] + (1 - omega) * B_inv @ SS_PREDICTION[0])
+    assert np.allclose(posterior.mean, mean, 0, atol=1e-14)
+    assert np.allclose(posterior.covar, covar, 0, atol=1e-14)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_predict_measurement_is_bitwise_chernoff_on_rounded_covariances(seed):
+    """Covariances computed as Q D Q^T are symmetric only to rounding; the drop-in still
+    gives ChernoffUpdater's bits (no symmetrisation at a fixed omega)."""
+    rng = np.random.default_rng(seed)
+    A, B = random_spd(rng, 4), random_spd(rng, 4, 1e6)
+    model = LinearGaussian(4, [0, 1, 2, 3], A)
+    prediction = GaussianStatePrediction(rng.standard_normal((4, 1)), B, timestamp=T0)
+    for omega in (0.05, 0.3, 0.95):
+        ours = FusionUpdater(omega=omega).predict_measurement(prediction, model)
+        theirs = ChernoffUpdater(None, omega=omega).predict_measurement(prediction, model)
+        assert np.array_equal(np.asarray(ours.covar), np.asarray(theirs.covar)), omega
 
 
 def test_omega_is_the_weight_of_the_detection():
@@ -346,6 +395,53 @@ def test_conversions_round_trip_without_warnings():
         to_gaussian_state(np.zeros(3), np.eye(2))
     with pytest.raises(TypeError, match="must be a Stone Soup"):
         to_estimate(np.zeros(2))
+
+
+BAD_COVARIANCES = [
+    ([[1.0, np.nan], [np.nan, 1.0]], "non-finite"),
+    ([[1.0, np.inf], [0.0, 1.0]], "non-finite"),
+    ([[1.0, 2.0], [2.0, 1.0]], "not positive definite"),
+    ([[-1.0, 0.0], [0.0, 1.0]], "not positive definite"),
+    ([[1.0, 0.5], [0.4, 1.0]], "not symmetric"),
+]
+
+
+@pytest.mark.parametrize("covar, problem", BAD_COVARIANCES)
+def test_to_estimate_validates_the_covariance_as_the_front_door(covar, problem):
+    state = GaussianState([[1.0], [2.0]], covar, timestamp=T0)
+    with pytest.raises(ValueError, match=rf"GaussianState's covar .*{problem}"):
+        to_estimate(state)
+    with pytest.raises(ValueError, match=rf"GaussianState's covar .*{problem}"):
+        to_estimate(Track([state]))
+    with pytest.raises(ValueError, match=problem):  # the front door says the same
+        fuse([(np.zeros(2), np.asarray(covar, float)), (np.zeros(2), np.eye(2))])
+
+
+@pytest.mark.parametrize("covar, problem", BAD_COVARIANCES)
+def test_to_gaussian_state_validates_the_covariance_as_the_front_door(covar, problem):
+    given = np.array(covar, dtype=float)
+    before = given.copy()
+    with pytest.raises(ValueError, match=rf"^P .*{problem}"):
+        to_gaussian_state(np.zeros(2), given)
+    np.testing.assert_array_equal(given, before)  # not modified
+
+
+def test_converters_validate_means_and_mixtures():
+    with pytest.raises(ValueError, match="x contains non-finite"):
+        to_gaussian_state([np.nan, 0.0], np.eye(2))
+    with pytest.raises(TypeError, match="P"):
+        to_gaussian_state(np.zeros(2), [["a", "b"], ["c", "d"]])
+    with pytest.raises(ValueError, match="GaussianState's mean contains non-finite"):
+        to_estimate(GaussianState([[np.inf], [0.0]], np.eye(2)))
+    components = [WeightedGaussianState([[0.0]], [[-1.0]], weight=1.0),
+                  WeightedGaussianState([[0.0]], [[-2.0]], weight=1.0)]
+    with pytest.raises(ValueError, match="GaussianMixture's covariance is not positive"):
+        to_estimate(GaussianMixture(components))
+    # ordinary input at condition number 1e12 passes unchanged (not symmetrised)
+    P = random_spd(np.random.default_rng(3), 4, 1e12)
+    x, Q = to_estimate(GaussianState(np.ones((4, 1)), P))
+    assert np.array_equal(Q, P)
+    assert np.array_equal(to_gaussian_state(x, P).covar, P)
 
 
 def test_particle_and_mixture_states_are_moment_matched_with_a_warning():

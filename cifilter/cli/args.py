@@ -96,8 +96,8 @@ def add_parallel_arguments(
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--workers", type=positive_int, metavar="N",
                        help="run the Monte Carlo on a local Dask cluster of N workers "
-                            "(needs cifilter[distributed])")
+                            "(needs Dask: pip install \".[distributed]\" from a clone)")
     group.add_argument("--scheduler", metavar="ADDRESS",
                        help="run the Monte Carlo on an existing Dask scheduler "
-                            "(needs cifilter[distributed])")
+                            "(needs Dask: pip install \".[distributed]\" from a clone)")
     return group

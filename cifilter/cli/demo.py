@@ -48,6 +48,8 @@ __all__ = [
     "constant_velocity_model",
     "format_network_table",
     "format_table",
+    "network_memory_estimate",
+    "pooled_anees_band",
     "run_demo",
     "run_network_demo",
     "run_two_tracks",
@@ -222,7 +224,7 @@ def _fuse_all(data, methods, rng):
     for name, x, P, guarantee in (("local A", data.x_a, data.P_a, "exact"),
                                   ("local B", data.x_b, data.P_b, "exact")):
         rows.append({"method": name, "guarantee": guarantee, "time": 0.0,
-                     **score(x, P, data.truth)})
+                     **score(x, P, data.truth), **_network_columns(x, P, data.truth)})
     for name in methods:
         record = get_method(name)
         start = time.perf_counter()
@@ -236,8 +238,30 @@ def _fuse_all(data, methods, rng):
         elapsed = time.perf_counter() - start
         fused[name] = result
         rows.append({"method": name, "guarantee": record.guarantee, "time": elapsed,
-                     **score(result.x, result.P, data.truth)})
+                     **score(result.x, result.P, data.truth),
+                     **_network_columns(result.x, result.P, data.truth)})
     return rows, fused
+
+
+def _network_columns(x, P, truth):
+    """The network demo's columns for the two tracks (runs, steps): velocity RMSE, the
+    pooled ANEES band and verdict, the share of steps in one step's bounds, and the
+    traces of P's position and velocity blocks."""
+    x, truth = np.asarray(x, dtype=float), np.asarray(truth, dtype=float)
+    P = np.broadcast_to(P, x.shape + x.shape[-1:])
+    velocity = [i for i in range(x.shape[-1]) if i not in POSITION]
+    nees = metrics.nees(truth, x, P)
+    pooled, lower, upper = pooled_anees_band(nees, x.shape[-1])
+    diagonal = np.diagonal(P, axis1=-2, axis2=-1)
+    return {
+        "rmse_velocity": float(metrics.rmse(truth, x, axis=None, components=velocity)),
+        "anees": pooled, "lower": lower, "upper": upper,
+        "verdict": ("conservative" if pooled < lower else
+                    "overconfident" if pooled > upper else "consistent"),
+        "steps_inside": metrics.anees(nees, x.shape[-1]).share_inside,
+        "trace_position": float(np.mean(np.sum(diagonal[..., POSITION], axis=-1))),
+        "trace_velocity": float(np.mean(np.sum(diagonal[..., velocity], axis=-1))),
+    }
 
 
 def format_table(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -380,7 +404,11 @@ def run_two_tracks(seed: int = 0, runs: int = 20, steps: int = 100,
     -------
     list of dict
         One row per estimator with ``method``, ``guarantee``, ``rmse``, ``mean_nees``,
-        ``inside``, ``mean_trace`` and ``time`` (or ``error``).
+        ``inside`` (share of single NEES values under the 95% chi-square quantile),
+        ``mean_trace`` and ``time`` (or ``error``), and the network demo's columns
+        ``rmse_velocity``, ``anees``, ``lower``, ``upper``, ``verdict`` (the pooled band,
+        :func:`pooled_anees_band`), ``steps_inside``, ``trace_position`` and
+        ``trace_velocity``: the printed table has the network demo's columns.
 
     Examples
     --------
@@ -402,11 +430,16 @@ def run_two_tracks(seed: int = 0, runs: int = 20, steps: int = 100,
         f"cifilter demo --scenario two-tracks: 2-D constant-velocity target, sensor A "
         f"(sigma x, y = 10, 2 m) and sensor B (3, 8 m);\n{runs} runs x {steps} steps, seed "
         f"{seed}. The tracks are correlated through the common process noise and fused "
-        "without feedback.\nA consistent estimator has mean NEES 4 and 95% of NEES inside "
-        "the chi-square bound; a conservative one has less.\n",
+        "without feedback.\n"
+        f"{_network_legend(runs, 4, nodes=False)}\n",
         file=out,
     )
-    print(format_table(rows), file=out)
+    fusions = runs * steps  # one batched call fuses every run and step
+    print(format_network_table([
+        row if "error" in row else
+        {**row, "inside": row["steps_inside"],
+         "us_per_fusion": 1e6 * row["time"] / fusions if row["time"] else 0.0}
+        for row in rows]), file=out)
     if directory is not None:
         for path in _plot_two_tracks(data, fused, directory):
             print(f"figure written to {path}", file=out)
@@ -421,13 +454,103 @@ def _directory(plot):
     return directory
 
 
+class _DemoStudy(NetworkStudy):
+    """The network study with the position and velocity parts reported apart: per run,
+    step and node also ``e/velocity_squared_error``, ``e/trace_position`` [m^2] and
+    ``e/trace_velocity`` [(m/s)^2] (the data and the other outputs are the study's own)."""
+
+    def _score(self, out, track, data, runs):
+        super()._score(out, track, data, runs)
+        position = list(self.scenario.position_indices)
+        velocity = [i for i in range(self.scenario.dim) if i not in position]
+        error = track.x - data.truth[:, :, None]
+        diagonal = np.diagonal(track.P, axis1=-2, axis2=-1)
+        name = track.method
+        out[f"{name}/velocity_squared_error"] = np.sum(error[..., velocity] ** 2, axis=-1)
+        out[f"{name}/trace_position"] = np.sum(diagonal[..., position], axis=-1)
+        out[f"{name}/trace_velocity"] = np.sum(diagonal[..., velocity], axis=-1)
+
+
+def pooled_anees_band(nees: ArrayLike, dim: int,
+                      confidence: float = 0.95) -> tuple[float, float, float]:
+    """The pooled ANEES and its band, with the runs as the independent units.
+
+    The NEES of one run's steps and nodes are correlated (the nodes exchange estimates;
+    a step's error carries into the next), so the pooled mean over ``runs x steps x
+    nodes`` values is *not* an average of that many independent chi-square values, and
+    the band of one step's average (:func:`cifilter.metrics.chi2_bounds` with ``runs``
+    values) is far too wide for it. The runs are independent: the run means
+    ``m_r`` (over steps and nodes) are i.i.d. with mean ``dim`` when the filter is
+    consistent, whatever the correlation inside a run. The pooled ANEES is their mean
+    ``m``; the band is the two-sided Student t interval ``dim -+ t_{R-1} s / sqrt(R)``
+    with ``s`` the standard deviation of the run means: ``m`` outside it rejects
+    consistency at the level ``1 - confidence`` (a t test of the mean of ``R`` run means).
+
+    Parameters
+    ----------
+    nees : array_like, shape (runs, ...)
+        NEES values, the independent runs along the first axis.
+    dim : int
+        State dimension (the mean NEES of a consistent filter).
+    confidence : float, optional
+        Probability of the band (default 0.95).
+
+    Returns
+    -------
+    anees : float
+        The pooled mean.
+    lower, upper : float
+        The band around ``dim`` (lower clipped at 0); both ``dim`` for a single run
+        (no spread to estimate: no verdict).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.cli.demo import pooled_anees_band
+    >>> rng = np.random.default_rng(0)
+    >>> m, lo, hi = pooled_anees_band(rng.chisquare(4, size=(10, 40, 6)), 4)
+    >>> bool(lo < m < hi), bool(3.5 < lo < 4 < hi < 4.5)
+    (True, True)
+    """
+    values = np.asarray(nees, dtype=float)
+    runs = values.shape[0]
+    means = values.reshape(runs, -1).mean(axis=1)
+    pooled = float(means.mean())
+    if runs < 2:
+        return pooled, float(dim), float(dim)
+    half = float(stats.t.ppf(0.5 + confidence / 2, runs - 1) * means.std(ddof=1)
+                 / np.sqrt(runs))
+    return pooled, max(0.0, dim - half), dim + half
+
+
+def _network_rows(results, scenario):
+    """summarize's rows with the pooled band, its verdict, and position and velocity
+    reported apart."""
+    rows = summarize(results, scenario)
+    for row in rows:
+        if "error" in row:
+            continue
+        name = row["method"]
+        row["step_lower"], row["step_upper"] = row.pop("lower"), row.pop("upper")
+        pooled, lower, upper = pooled_anees_band(results[f"{name}/nees"], scenario.dim)
+        row["lower"], row["upper"] = lower, upper
+        row["verdict"] = ("conservative" if pooled < lower else
+                          "overconfident" if pooled > upper else "consistent")
+        row["rmse_velocity"] = float(np.sqrt(np.mean(results[f"{name}/velocity_squared_error"])))
+        row["trace_position"] = float(np.mean(results[f"{name}/trace_position"]))
+        row["trace_velocity"] = float(np.mean(results[f"{name}/trace_velocity"]))
+    return rows
+
+
 def format_network_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """The network demo's table as text (one row per estimator, with column headers).
 
     Parameters
     ----------
     rows : list of dict
-        As returned by :func:`run_network_demo` (:func:`cifilter.network.summarize`).
+        As returned by :func:`run_network_demo` (rows of
+        :func:`cifilter.network.summarize`, without the velocity RMSE and the position and
+        velocity traces, are shown with "-" in those columns).
 
     Returns
     -------
@@ -438,28 +561,39 @@ def format_network_table(rows: Sequence[Mapping[str, Any]]) -> str:
     --------
     >>> from cifilter.cli.demo import format_network_table
     >>> table = format_network_table([{"method": "ci", "guarantee": "bound", "rmse": 3.8,
-    ...     "anees": 3.0, "lower": 2.44, "upper": 5.93, "inside": 0.75,
-    ...     "mean_trace": 25.6, "verdict": "consistent", "us_per_fusion": 120.0}])
-    >>> table.splitlines()[0].split()[:4]
-    ['method', 'P', 'is', 'RMSE']
-    >>> table.splitlines()[2].split()
-    ['ci', 'bound', '3.800', '3.00', '[2.44,', '5.93]', '75.0%', '25.60', 'consistent', '120']
+    ...     "rmse_velocity": 1.2, "anees": 3.0, "lower": 3.8, "upper": 4.2, "inside": 0.75,
+    ...     "trace_position": 20.5, "trace_velocity": 5.1, "verdict": "conservative",
+    ...     "us_per_fusion": 120.0}])
+    >>> table.splitlines()[1].split()[:2]   # under a line of column titles
+    ['method', 'guarantee']
+    >>> table.splitlines()[3].split()  # doctest: +NORMALIZE_WHITESPACE
+    ['ci', 'bound', '3.800', '1.200', '3.00', '[3.80,', '4.20]', 'conservative', '75.0%',
+     '20.50', '5.10', '120']
     """
-    header = (f"{'method':<12} {'P is':<6} {'RMSE pos [m]':>12} {'ANEES':>8}  "
-              f"{'95% bounds':<13} {'in bounds':>9} {'mean tr(P)':>11}  {'verdict':<14} "
-              f"{'time/fusion [us]':>16}")
-    lines = [header, "-" * len(header)]
+    top = (f"{'':<12} {'':<9} {'RMSE':>8} {'RMSE':>8} {'pooled':>8}  "
+           f"{'95% band of':<15} {'':<13} {'steps in':>9} {'mean tr P':>9} "
+           f"{'mean tr P':>10} {'batched':>8}")
+    header = (f"{'method':<12} {'guarantee':<9} {'pos [m]':>8} {'vel[m/s]':>8} {'ANEES':>8}  "
+              f"{'pooled ANEES':<15} {'verdict':<13} {'bounds':>9} {'pos [m2]':>9} "
+              f"{'vel[m2/s2]':>10} {'us/fusion':>8}")
+    lines = [top, header, "-" * len(header)]
     for row in rows:
         if "error" in row:
-            lines.append(f"{row['method']:<12} {row['guarantee']:<6} cannot run: "
+            lines.append(f"{row['method']:<12} {row['guarantee']:<9} cannot run: "
                          f"{row['error']}")
             continue
-        bounds = f"[{row['lower']:.2f}, {row['upper']:.2f}]"
+        band = f"[{row['lower']:.2f}, {row['upper']:.2f}]"
         timing = f"{row['us_per_fusion']:.0f}" if row["us_per_fusion"] else "-"
+        # rows of cifilter.network.summarize lack the columns the demo adds: shown as "-"
+        velocity, position_trace, velocity_trace = (
+            f"{row[key]:{spec}}" if key in row else "-"
+            for key, spec in (("rmse_velocity", ".3f"), ("trace_position", ".2f"),
+                              ("trace_velocity", ".2f")))
         lines.append(
-            f"{row['method']:<12} {row['guarantee']:<6} {row['rmse']:>12.3f} "
-            f"{row['anees']:>8.2f}  {bounds:<13} {100 * row['inside']:>8.1f}% "
-            f"{row['mean_trace']:>11.2f}  {row['verdict']:<14} {timing:>16}"
+            f"{row['method']:<12} {row['guarantee']:<9} {row['rmse']:>8.3f} "
+            f"{velocity:>8} {row['anees']:>8.2f}  {band:<15} "
+            f"{row['verdict']:<13} {100 * row['inside']:>8.1f}% "
+            f"{position_trace:>9} {velocity_trace:>10} {timing:>8}"
         )
     return "\n".join(lines)
 
@@ -473,6 +607,19 @@ def _plain_log_ticks(ax):
     low, high = ax.get_ylim()
     # label the minor ticks (2, 3, 5, ...) only when the axis spans little more than a decade
     ax.yaxis.set_minor_formatter(plain if high < 30 * low else NullFormatter())
+
+
+def _scale_bar(ax, scale):
+    """A scale bar in the lower left of a panel drawn at ``scale`` layout units per m."""
+    low_x, high_x = ax.get_xlim()
+    low_y, high_y = ax.get_ylim()
+    metres = 0.2 * (high_x - low_x) / scale  # about a fifth of the panel, rounded to 1-2-5
+    exponent = np.floor(np.log10(metres))
+    step = min((1.0, 2.0, 5.0), key=lambda s: abs(s * 10**exponent - metres)) * 10**exponent
+    x0, y0 = low_x + 0.05 * (high_x - low_x), low_y + 0.06 * (high_y - low_y)
+    ax.plot([x0, x0 + step * scale], [y0, y0], color="k", lw=2.5, solid_capstyle="butt")
+    ax.annotate(f"{step:g} m", (x0 + step * scale / 2, y0), xytext=(0, 3),
+                textcoords="offset points", ha="center", va="bottom", fontsize=8)
 
 
 def _plot_network(results, rows, scenario, directory):
@@ -496,23 +643,38 @@ def _plot_network(results, rows, scenario, directory):
                 label="ANEES, mean over nodes")
         ax.plot([], [], lw=0.6, color="C0", label="ANEES of each node")
         ax.set(title=name, xlabel="step", ylabel="ANEES", yscale="log")
-        ax.legend(fontsize="x-small", loc="best")
         _plain_log_ticks(ax)
+    # one legend for all panels, below them (it covered the curves in every panel)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="lower center", ncol=4,
+               fontsize="small", frameon=False)
+    fig.subplots_adjust(bottom=fig.subplotpars.bottom + 0.03)
     fig.suptitle(f"{scenario.name}: ANEES over {runs} runs against time; inside the band "
                  "is consistent, below conservative, above overconfident")
     paths.append(directory / "nees.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
 
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    for index, name in enumerate(names):
+    fig, ax = plt.subplots(figsize=(10, 5))
+    fig.subplots_adjust(left=0.08, right=0.78, bottom=0.11, top=0.92)
+    # every line its own colour, dash pattern and marker (15 lines, a 10-colour cycle drew
+    # naive and le both red); the references in black
+    dashes, markers = ["-", "--", "-.", ":"], "osD^vP*Xh<>p"
+    rules = [name for name in names if name not in ("local", "centralised")]
+    for name in names:
         rmse = np.sqrt(np.mean(results[f"{name}/squared_error"], axis=(0, 2)))
-        style = "--" if name in ("local", "centralised") else "-"
-        ax.plot(np.arange(1, rmse.size + 1), rmse, style, color=f"C{index % 10}", label=name)
+        steps = np.arange(1, rmse.size + 1)
+        if name in ("local", "centralised"):
+            ax.plot(steps, rmse, "--" if name == "local" else ":", color="k", lw=2,
+                    label=f"{name} (reference)")
+            continue
+        index = rules.index(name)
+        ax.plot(steps, rmse, dashes[index % 4], color=f"C{index % 10}",
+                marker=markers[index % len(markers)], markevery=(index % 5, 5), ms=4,
+                lw=1.3, label=name)
     ax.set(title=f"{scenario.name}: position RMSE over runs and nodes", xlabel="step",
            ylabel="RMSE [m]", yscale="log")
     _plain_log_ticks(ax)
-    ax.legend(fontsize="small", ncol=2)
+    ax.legend(fontsize="small", loc="center left", bbox_to_anchor=(1.01, 0.5))
     paths.append(directory / "rmse.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
@@ -546,10 +708,12 @@ def _plot_network(results, rows, scenario, directory):
                     continue
                 ax.plot(curve[0], curve[1], lw=1.2, label=label if node == 0 else None,
                         **style)
-            ax.annotate(str(node), xy[node], fontsize=7, ha="center", va="center",
-                        color="0.3")
+            ax.annotate(str(node), xy[node], fontsize=9, fontweight="bold", ha="center",
+                        va="center", color="0.15",
+                        bbox=dict(boxstyle="circle,pad=0.15", fc="white", ec="0.6", lw=0.6))
         ax.set(title=name, aspect="equal", xticks=[], yticks=[])
         ax.margins(0.12)
+        _scale_bar(ax, scale)
     fig.legend(*axes[0].get_legend_handles_labels(), loc="lower center", ncol=2)
     fig.suptitle(f"{scenario.name}: position ellipses at the last step at every node "
                  f"(1 layout unit = {1 / scale:.0f} m)")
@@ -557,6 +721,76 @@ def _plot_network(results, rows, scenario, directory):
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
     return paths
+
+
+def network_memory_estimate(nodes: int, dim: int, steps: int, chunk: int, *,
+                            estimators: int = 15) -> int:
+    """Bytes of memory a network study needs at its peak, estimated before it starts.
+
+    The command line refuses ``demo --nodes N`` when this exceeds the memory available.
+    The estimate is an upper bound fitted to measurements (peak resident size of one
+    chunk of the ring, ``"optimal"`` and ``"ci"`` rules, 100 to 400 nodes): the rules that
+    track the joint error covariance of the whole network (``"optimal"``'s truth, the
+    centralised filter) hold about ``8 * chunk + 4`` matrices of ``(nodes * dim)**2``
+    floats, and every estimator's track holds ``chunk * steps * nodes`` means and
+    covariances, plus about 250 MB for the interpreter and the libraries.
+
+    Parameters
+    ----------
+    nodes, dim : int
+        Nodes of the network and state dimension.
+    steps : int
+        Time steps per run.
+    chunk : int
+        Runs simulated together (one Monte Carlo chunk).
+    estimators : int, optional
+        Estimators scored (the rules plus the two references).
+
+    Returns
+    -------
+    int
+        The estimate in bytes.
+
+    Examples
+    --------
+    >>> from cifilter.cli.demo import network_memory_estimate
+    >>> network_memory_estimate(6, 4, 40, 5) < 300e6      # the default demo
+    True
+    >>> network_memory_estimate(100_000, 4, 40, 5) > 1e13  # a ring of 100 000 nodes
+    True
+    """
+    nodes, dim = check_int(nodes, "nodes", low=1), check_int(dim, "dim", low=1)
+    steps, chunk = check_int(steps, "steps", low=1), check_int(chunk, "chunk", low=1)
+    estimators = check_int(estimators, "estimators", low=1)
+    joint = 8 * (nodes * dim) ** 2 * (8 * chunk + 4)
+    tracks = 8 * chunk * steps * nodes * (dim * dim + dim + 3) * (estimators + 3)
+    return int(250e6 + joint + tracks)
+
+
+def _network_legend(runs, dim, *, nodes=True):
+    """The lines under the demo's title that say what the columns mean (``nodes=False``:
+    the two tracks, whose values are per run and step only)."""
+    lower, upper = metrics.chi2_bounds(dim, runs)
+    where = "runs, steps and nodes" if nodes else "runs and steps"
+    inside = "a run's steps and nodes are" if nodes else "a run's steps are"
+    share = "steps and nodes" if nodes else "steps"
+    references = ("'local' never exchanges;\n'centralised' is one filter with every "
+                  "measurement (the best possible)." if nodes else
+                  "'local A', 'local B': each\ntracker alone.")
+    return (
+        "guarantee: what the rule's P is: 'exact' the covariance of the error, 'bound' an "
+        "upper bound on it for any\ncorrelation, 'none' neither (a heuristic). RMSE of "
+        f"position [m] and of velocity [m/s] over {where}.\n"
+        f"pooled ANEES: the NEES ({dim} when consistent) averaged over {where}. Its 95% "
+        f"band treats the runs as\nthe independent units ({inside} correlated): "
+        f"{dim} -+ t * s / sqrt(runs), s the spread of the run\nmeans (docs/cli.rst "
+        "derives it); below the band is 'conservative', above 'overconfident'. 'steps in "
+        f"bounds': the share\nof {share} whose ANEES over the {runs} runs lies in one "
+        f"step's 95% chi-square bounds [{lower:.2f}, {upper:.2f}].\n"
+        "mean tr P: the trace of P's position block [m^2] and of its velocity block "
+        "[(m/s)^2]. 'batched us/fusion': the time\nof a step's fusions of all runs "
+        f"at once divided by their number (it falls with more runs). {references}"
+    )
 
 
 def run_network_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[int] = None,
@@ -599,7 +833,10 @@ def run_network_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[
     Returns
     -------
     list of dict
-        The rows of :func:`cifilter.network.summarize`.
+        The rows of :func:`cifilter.network.summarize`, with ``lower``, ``upper`` and
+        ``verdict`` those of the pooled ANEES (:func:`pooled_anees_band`; the single
+        step's bounds move to ``step_lower``, ``step_upper``), and ``rmse_velocity``,
+        ``trace_position``, ``trace_velocity``.
 
     Examples
     --------
@@ -617,7 +854,7 @@ def run_network_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[
     steps = NETWORK_DEFAULTS["steps"] if steps is None else check_int(steps, "steps", low=1)
     if not isinstance(scenario, Scenario):
         scenario = get_scenario(scenario, **({} if nodes is None else {"nodes": nodes}))
-    study = NetworkStudy(scenario, None if methods is None else tuple(methods), steps,
+    study = _DemoStudy(scenario, None if methods is None else tuple(methods), steps,
                          feedback=feedback, period=period, sequential=sequential,
                          delay=delay, loss=loss)
     directory = None if plot is None else _directory(plot)
@@ -625,7 +862,7 @@ def run_network_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[
     results = montecarlo.run(study, runs, chunk_size=DEMO_CHUNK_SIZE, client=client,
                              seed=seed, progress=progress)
     elapsed = time.perf_counter() - start
-    rows = summarize(results, scenario)
+    rows = _network_rows(results, scenario)
     exchange = ("one at a time" if sequential else "all at once")
     print(
         f"cifilter demo: {scenario.description}.\n"
@@ -636,11 +873,7 @@ def run_network_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[
         f"{', one step late' if delay else ''}"
         f"{f', {100 * loss:g}% of messages lost' if loss else ''}), "
         f"{'feeding the result back into its filter' if feedback else 'without feedback'}.\n"
-        "ANEES: the NEES averaged over the runs at every step and node (4 when consistent); "
-        "'in bounds' is the share of steps and nodes\ninside its two-sided 95% chi-square "
-        "bounds; the verdict compares the mean ANEES with the bounds. 'local' never "
-        "exchanges;\n'centralised' is one filter with every measurement (the best "
-        "possible).\n",
+        f"{_network_legend(runs, scenario.dim)}\n",
         file=out,
     )
     print(format_network_table(rows), file=out)

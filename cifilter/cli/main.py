@@ -1,6 +1,7 @@
 """The parser of ``python -m cifilter`` and its sub-commands."""
 
 import argparse
+import contextlib
 import os
 import sys
 from collections.abc import Sequence
@@ -60,11 +61,120 @@ def _demo(args):
         if args.nodes is not None and args.scenario in ("naveen-taylor", "common-information"):
             _usage_error("demo", "--nodes applies to ring, chain and fully-connected; "
                          f"{args.scenario} has a fixed number of nodes")
-        with montecarlo.dask_client(workers=args.workers, scheduler=args.scheduler) as client:
+        if args.nodes is not None:  # a small network of the same kind checks --nodes and
+            small = _scenario(args, min(args.nodes, 8))  # gives the state dimension;
+            _check_memory(args.nodes, small.dim, args)  # the network itself may be too big
+        scenario = _scenario(args, args.nodes)
+        if args.nodes is None:
+            _check_memory(scenario.nodes, scenario.dim, args)
+        del network["nodes"]  # the scenario is built
+        with contextlib.ExitStack() as stack:
+            client = _enter_client(stack, args, montecarlo)
             rows = run_demo(seed=args.seed, runs=args.runs, steps=args.steps,
-                            methods=args.methods, plot=args.plot, scenario=args.scenario,
+                            methods=args.methods, plot=args.plot, scenario=scenario,
                             client=client, **network)
     return 0 if all("error" not in row for row in rows) or args.methods is None else 1
+
+
+def _scenario(args, nodes):
+    """The network of ``--scenario`` with ``nodes`` nodes (None: its own number), or a
+    one-line error (``--nodes 1``)."""
+    from ..network.graph import get_scenario
+
+    try:
+        return get_scenario(args.scenario, **({} if nodes is None else {"nodes": nodes}))
+    except (TypeError, ValueError) as error:
+        option = "--nodes" if args.nodes is not None else "--scenario"
+        _usage_error("demo", f"{option}: {error}")
+
+
+def _check_memory(nodes, dim, args):
+    """Refuse a network too large for this machine's memory before any work starts."""
+    from .demo import DEMO_CHUNK_SIZE, NETWORK_DEFAULTS, network_memory_estimate
+
+    steps = NETWORK_DEFAULTS["steps"] if args.steps is None else args.steps
+    methods = available_methods() if args.methods is None else args.methods
+    need = network_memory_estimate(nodes, dim, steps,
+                                   min(DEMO_CHUNK_SIZE, args.runs or NETWORK_DEFAULTS["runs"]),
+                                   estimators=len(methods) + 2)
+    have = _available_memory()
+    if have is not None and need > have:
+        _usage_error("demo", f"--nodes {nodes}: the study would need about "
+                     f"{_bytes(need)} of memory (an estimate made before starting: the "
+                     f"network's joint covariances grow as the square of the nodes), "
+                     f"{_bytes(have)} are available; use fewer nodes")
+
+
+def _available_memory():
+    """Bytes of memory available to a new allocation (Linux: MemAvailable), or None."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def _bytes(count):
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if count < 1000 or unit == "TB":
+            return f"{count:.0f} {unit}" if unit == "B" else f"{count:.1f} {unit}"
+        count /= 1000
+    return f"{count:.1f} PB"  # pragma: no cover - the loop returns
+
+
+SCHEDULER_TIMEOUT = 5
+"""Seconds the command line waits for a ``--scheduler`` to answer before it gives up."""
+
+
+def _enter_client(stack, args, montecarlo):
+    """The Dask client of ``--workers``/``--scheduler`` (None for neither), entered in
+    ``stack``; an unreachable scheduler or a missing Dask is a one-line error, and a
+    scheduler that does not answer is given up after :data:`SCHEDULER_TIMEOUT` seconds."""
+    if args.workers is None and args.scheduler is None:
+        return None
+    try:
+        if args.scheduler is None:
+            return stack.enter_context(montecarlo.dask_client(workers=args.workers))
+        _check_reachable(args.scheduler)
+        import dask
+
+        # The connect timeout of the client, only while it connects (default 30 s).
+        with dask.config.set({"distributed.comm.timeouts.connect": f"{SCHEDULER_TIMEOUT}s"}):
+            return stack.enter_context(montecarlo.dask_client(scheduler=args.scheduler))
+    except ImportError as error:
+        _usage_error("demo", str(error))
+    except (OSError, TimeoutError) as error:  # asyncio's and distributed's timeouts too
+        if args.scheduler is None:
+            raise
+        _usage_error("demo", f"--scheduler: cannot connect to {args.scheduler!r} within "
+                     f"{SCHEDULER_TIMEOUT} s ({_reason(error)})")
+    return None  # pragma: no cover - _usage_error exits
+
+
+def _reason(error):
+    text = str(error).strip().splitlines()[0] if str(error).strip() else ""
+    return f"{type(error).__name__}: {text}" if text else type(error).__name__
+
+
+def _check_reachable(address):
+    """For a ``tcp://host:port`` address, a TCP connection within the timeout (fast
+    refusal of a closed port); other protocols are left to Dask."""
+    import socket
+    from urllib.parse import urlsplit
+
+    if "://" not in address:
+        address = f"tcp://{address}"
+    parts = urlsplit(address)
+    if parts.scheme != "tcp" or parts.hostname is None or parts.port is None:
+        return
+    with socket.create_connection((parts.hostname, parts.port), timeout=SCHEDULER_TIMEOUT):
+        pass
 
 
 def _usage_error(command, message):

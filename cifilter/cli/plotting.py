@@ -8,7 +8,7 @@ from scipy import stats
 
 from .._numerics.validation import as_float_array, check_covariances, check_scalar
 
-if TYPE_CHECKING:  # matplotlib is optional (cifilter[plot]) and imported lazily
+if TYPE_CHECKING:  # matplotlib is optional (the plot extra) and imported lazily
     from matplotlib.axes import Axes
     from matplotlib.lines import Line2D
 

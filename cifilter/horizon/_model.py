@@ -9,7 +9,7 @@ scaling scheme: ``docs/methods/horizon.rst``.
 
 import math
 import numbers
-from typing import NamedTuple, Optional
+from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
@@ -18,7 +18,11 @@ from .._numerics.linalg import cho_solve, cholesky, solve_lower, symmetrize
 from .._numerics.validation import as_float_array, as_matrix, check_covariances, check_psd
 
 __all__ = [
+    "MAX_PLAIN_STEPS",
+    "STEADY_FROM",
     "Model",
+    "PeriodicBounds",
+    "SteadyState",
     "Terms",
     "as_model",
     "at_horizon",
@@ -180,6 +184,100 @@ def _check_finite(step, horizon, **arrays):
             )
 
 
+# --------------------------------------------------------------------------- steady state
+# Horizons up to STEADY_FROM steps are always computed step by step (bitwise as before the
+# steady-state detection existed). Beyond, the recursion of a constant model looks for its
+# steady state: a state that repeats exactly (a fixed point or a cycle of the floating-point
+# recursion, see :class:`SteadyState`), after which whole cycles are skipped. A horizon above
+# MAX_PLAIN_STEPS whose recursion has not repeated by then is refused with a ValueError.
+STEADY_FROM = 4096
+MAX_PLAIN_STEPS = 50_000
+
+
+class SteadyState:
+    """Brent's cycle detection on the scaled recursion's state (for a constant model).
+
+    ``observe(step, state, log_scale, gamma_changed)`` after every step, with ``state`` the
+    arrays the next step is computed from (``P_c``, ``Psi``, ``Gamma``, ``e``; ``P_hat, e``
+    for :func:`riccati_scaled`), the accumulated log scale of ``Psi`` (0 if there is none)
+    and whether the step changed ``Gamma``. A copy of the state is kept at steps 1, 2, 4,
+    8, ...; when a later state equals the kept one bitwise, ``Gamma`` has not changed since
+    it was kept and the log scale has not grown, ``(period, log-scale change per period)``
+    is returned, then and at every later call.
+
+    Why this is exact: a step's result depends on the state and on the log scale ``s`` only
+    through the term ``exp(2 s - e ln 2) B^T B`` added to ``Gamma``. If ``Gamma`` absorbed
+    every term of one period (it did not change), the terms at the same phase of later
+    periods are no larger in magnitude (``s`` did not grow, and rounding is monotone: the
+    floating-point sum of ``s`` and the same increments is monotone in ``s``), so they are
+    absorbed too, and the state repeats with that period for ever. Only ``s`` keeps
+    changing; skipping ``c`` periods adds ``c`` times the change of one period to it
+    (instead of ``c * period`` rounded additions).
+    """
+
+    def __init__(self) -> None:
+        self.kept: Optional[tuple] = None
+        self.kept_step = 0
+        self.kept_scale: Any = None
+        self.next_keep = 1
+        self.gamma_step = 0
+        self.found: Optional[tuple] = None
+
+    def observe(self, step: int, state: tuple, log_scale: Any,
+                gamma_changed: bool) -> Optional[tuple]:
+        """Record the state after ``step`` steps.
+
+        Parameters
+        ----------
+        step : int
+            Steps done so far.
+        state : tuple of ndarray or int
+            What the next step is computed from (compared bit for bit).
+        log_scale : float or ndarray
+            The accumulated log scale ``s`` (0 where there is none).
+        gamma_changed : bool
+            Whether this step changed ``Gamma``.
+
+        Returns
+        -------
+        tuple or None
+            ``(period, change of s per period)`` once the state repeats, else None.
+        """
+        if gamma_changed:
+            self.gamma_step = step
+        if self.found is not None:
+            return self.found
+        if (self.kept is not None and self.gamma_step <= self.kept_step
+                and np.all(np.asarray(log_scale) <= self.kept_scale)
+                and all(np.array_equal(a, b) for a, b in zip(state, self.kept))):
+            change = np.asarray(log_scale) - self.kept_scale
+            self.found = (step - self.kept_step, change if change.ndim else float(change))
+            return self.found
+        if step == self.next_keep:
+            self.kept = tuple(np.array(a, copy=True) for a in state)
+            self.kept_step = step
+            self.kept_scale = np.array(log_scale, dtype=float, copy=True)
+            self.next_keep *= 2
+        return None
+
+
+def _skip(step, horizon, wanted, found):
+    """``(new step, periods skipped)``: whole periods up to the next wanted horizon."""
+    period = found[0]
+    target = min([w for w in wanted if w > step] + [horizon])
+    periods = (target - step) // period
+    return step + periods * period, periods
+
+
+def _no_steady_state(horizon):
+    return ValueError(
+        f"horizon={horizon} is too long: the Riccati recursion of this model has not reached "
+        f"a steady state (a state that repeats exactly) within {MAX_PLAIN_STEPS} steps, the "
+        "most that are run one by one; ask for a horizon of at most "
+        f"{MAX_PLAIN_STEPS} (typical causes: a closed loop whose slowest mode is a rotating "
+        "complex pair, or an unstable mode the measurements do not stabilise)")
+
+
 # --------------------------------------------------------------------------- Riccati steps
 def predict(P, model, e=None):
     """Eq. (16): F P F^T + G Q G^T (with P = 2^e P_hat: for P_hat, noise scaled by 2^-e)."""
@@ -209,15 +307,41 @@ def update(M, measurement):
     return symmetrize(P), A, L, H
 
 
-def riccati_scaled(P, model, horizon):
-    """Bounds after 0, 1, ..., horizon steps as a list of ``(P_hat, e)``, ``P = 2^e P_hat``.
+class PeriodicBounds:
+    """Bounds after 0, 1, ..., ``horizon`` steps: the computed ones, then their last
+    ``period`` repeated (an exact cycle of the recursion, :class:`SteadyState`)."""
 
-    Raises ValueError if a bound is not finite even on this scale (naming the step).
+    def __init__(self, bounds, period, horizon):
+        self.bounds, self.period, self.horizon = bounds, period, horizon
+
+    def __len__(self):
+        return self.horizon + 1
+
+    def __getitem__(self, k):
+        computed = len(self.bounds)
+        if k < 0:
+            k += self.horizon + 1
+        if not 0 <= k <= self.horizon:
+            raise IndexError(k)
+        if k < computed:
+            return self.bounds[k]
+        start = computed - self.period
+        return self.bounds[start + (k - start) % self.period]
+
+
+def riccati_scaled(P, model, horizon):
+    """Bounds after 0, 1, ..., horizon steps as a sequence of ``(P_hat, e)``, ``P = 2^e P_hat``.
+
+    A list, or for a constant model beyond :data:`STEADY_FROM` steps whose recursion repeats
+    exactly, a :class:`PeriodicBounds`. Raises ValueError if a bound is not finite even on
+    this scale (naming the step), or :func:`_no_steady_state`'s error.
     """
     e = np.zeros(P.shape[:-2], dtype=np.int64)
     bounds = [(P, e)]
+    finder = SteadyState() if model.steps is None and horizon > STEADY_FROM else None
+    step = 0
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):
-        for step in range(horizon):
+        while step < horizon:
             P_hat, e = bounds[-1]
             e = np.broadcast_to(e, np.broadcast_shapes(e.shape, model.F.shape[:-2],
                                                        model.noise.shape[:-2]))
@@ -229,6 +353,14 @@ def riccati_scaled(P, model, horizon):
                 M = update(M, _scaled(measurement, e))[0]
             _check_finite(step + 1, horizon, bound=M)
             bounds.append(rescale(M, e))
+            step += 1
+            if finder is None:
+                continue
+            if finder.observe(step, bounds[-1], 0.0, False) is not None:
+                # The map P -> P' is autonomous: the bounds repeat exactly with the period.
+                return PeriodicBounds(bounds, finder.found[0], horizon)
+            if step == MAX_PLAIN_STEPS and horizon > MAX_PLAIN_STEPS:
+                raise _no_steady_state(horizon)
     return bounds
 
 
@@ -274,13 +406,16 @@ def _single_horizon_terms(model, horizon, n, wanted):
     P_c, Psi, Gamma = np.zeros((n, n)), eye.copy(), np.zeros((n, n))
     log_scale, e = 0.0, 0
     found = []
+    finder = SteadyState() if model.steps is None and horizon > STEADY_FROM else None
+    step = 0
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):
-        for step in range(horizon + 1):
+        while True:
             if step in wanted:
                 found.append(_record(P_c, Psi, np.array(log_scale), Gamma,
                                      np.array(e, dtype=np.int64)))
             if step == horizon:
                 break
+            Gamma_before = Gamma
             noise = model.noise if e == 0 else np.ldexp(model.noise, -e)
             M = F @ P_c @ FT + noise
             M = 0.5 * (M + M.T)
@@ -321,6 +456,15 @@ def _single_horizon_terms(model, horizon, n, wanted):
                 _check_finite(step + 1, horizon, **{"the bound P_c": P_c,
                                                     "the information Gamma": Gamma,
                                                     "the transition Psi": Psi})
+            step += 1
+            if finder is None:
+                continue
+            if finder.observe(step, (P_c, Psi, Gamma, e), log_scale,
+                              not np.array_equal(Gamma, Gamma_before)) is not None:
+                step, periods = _skip(step, horizon, wanted, finder.found)
+                log_scale += periods * finder.found[1]
+            elif step == MAX_PLAIN_STEPS and horizon > MAX_PLAIN_STEPS:
+                raise _no_steady_state(horizon)
     return found
 
 
@@ -348,12 +492,15 @@ def horizon_terms(model, horizon, n, collect=None):
     e = np.zeros(batch, dtype=np.int64)  # P_c = 2^e P_c_hat
     Gamma = np.zeros(batch + (n, n))
     found = []
+    finder = SteadyState() if model.steps is None and horizon > STEADY_FROM else None
+    step = 0
     with np.errstate(over="ignore", invalid="ignore", under="ignore"):
-        for step in range(horizon + 1):
+        while True:
             if step in wanted:
                 found.append(_record(P_c, Psi, log_scale, Gamma, e))
             if step == horizon:
                 break
+            Gamma_before = Gamma
             M = predict(P_c, model, e)
             Psi = model.F @ Psi
             measurement = model.measurement(step)
@@ -387,6 +534,15 @@ def horizon_terms(model, horizon, n, collect=None):
                                    for M in (P_c, Gamma, Psi))
                 log_scale = np.broadcast_to(log_scale, batch)
                 e = np.broadcast_to(e, batch)
+            step += 1
+            if finder is None:
+                continue
+            if finder.observe(step, (P_c, Psi, Gamma, e), log_scale,
+                              not np.array_equal(Gamma, Gamma_before)) is not None:
+                step, periods = _skip(step, horizon, wanted, finder.found)
+                log_scale = log_scale + periods * finder.found[1]
+            elif step == MAX_PLAIN_STEPS and horizon > MAX_PLAIN_STEPS:
+                raise _no_steady_state(horizon)
     return found if collect is not None else found[0]
 
 

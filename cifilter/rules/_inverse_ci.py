@@ -21,10 +21,19 @@ terms: ``K_a = (1 - omega) P Ya^-1``, ``K_b = omega P Yb^-1``. For *any* gains w
 
 bounds the error covariance under the common-information model (every cross-covariance
 ``Pab = Pa C Pb`` with ``0 <= C <= Pa^-1, C <= Pb^-1``), and for the ICI gains ``B`` is
-ICI's ``P``. :func:`cifilter._numerics.information.weighted_fusion` returns exactly this ``B`` of
-the gains it returns, so the returned ``P`` bounds the error of the returned gains
-whatever rounding went into them. The factors of ``Ya`` and ``Yb`` come from QR
-factorisations of their stacked square-root factors, so no condition number is squared.
+ICI's ``P``.
+
+The returned fusion (:func:`inverse_ci_fusion`) does *not* go through ``Ya`` and ``Yb``:
+their condition numbers reach ``cond(Pa)^2 cond(Pb)``, far beyond what float64 resolves at
+condition numbers of 1e9, and gains from their information were off by orders of magnitude
+(issue 21). The gains are computed where every quantity is bounded, in the coordinates that
+whiten ``Gamma`` (:func:`_whitened_gains`), and ``P`` is ``B`` of those gains assembled from
+the *inputs'* Cholesky factors (:func:`common_information_bound`), the products of the
+gains with the inputs accumulated in extended precision. So the returned ``P`` is the
+bound of the returned gains to rounding of order ``cond * eps`` in every direction
+(measured against 50-digit references: ``docs/methods/ici.rst``). The factors of ``Ya``
+and ``Yb`` (QR factorisations of their stacked square-root factors) serve only the
+derivatives in omega of the robust solver below.
 
 The criteria ``trace(W P)`` and ``log det P`` are convex in omega (in the basis that
 diagonalises Pa and Pb every eigenvalue of ``P`` is a convex linear-fractional function
@@ -48,12 +57,11 @@ from .._numerics.information import (
     information_factors,
     lower_inverse_stack,
     squared_norms,
-    weighted_fusion,
 )
 from .._numerics.optimize import interval_gap, minimize_convex_interval, minimize_convex_scalar
 
-__all__ = ["InversePair", "inverse_ci_derivatives", "inverse_ci_fusion", "inverse_ci_pair",
-           "optimal_inverse_omega"]
+__all__ = ["InversePair", "common_information_bound", "inverse_ci_derivatives",
+           "inverse_ci_fusion", "inverse_ci_pair", "optimal_inverse_omega"]
 
 
 class InversePair(NamedTuple):
@@ -108,18 +116,105 @@ def _information_at(pair, omega, failures="raise"):
     return L_Y, L_Y_inv, weights, factors
 
 
-def inverse_ci_fusion(pair, omega):
-    """ICI at ``omega`` (size,): ``(x, P, gains)``, ``P`` the bound of the gains.
+def _whitened_gains(pair, omega):
+    """ICI gains ``(Ka, Kb)`` (size, n, n) at ``omega`` (size,), computed in the coordinates
+    that whiten ``Gamma = omega Pa + (1 - omega) Pb = G G^T``.
 
-    Raises IllConditionedError where the fused information is numerically singular.
+    With ``X = G^-1 Pa G^-T`` and ``Y = G^-1 Pb G^-T``, ``omega X + (1 - omega) Y = I``: X and Y
+    commute, and in the eigenbasis ``U`` of X (eigenvalues ``x``, ``y``, both in
+    ``[0, 1 / omega]`` and ``[0, 1 / (1 - omega)]``) the whitened gains are the scalars
+    ``kb = omega x^2 / (omega x^2 + (1 - omega) y^2)`` and ``ka = 1 - kb`` (the ICI equations
+    in that basis). Every quantity here is bounded, so rounding stays of order eps in the
+    whitened gains; ``Kb = G U diag(kb) U^T G^-1``. ``G`` comes from a QR factorisation of
+    ``[sqrt(omega) La, sqrt(1 - omega) Lb]`` (nothing is squared). The gain of the estimate
+    of larger weight (``1 - omega`` for a, ``omega`` for b) is ``I`` minus the other, so the
+    gains sum to the identity to rounding; at ``omega = 0`` or ``1`` they are exactly
+    ``(I, 0)`` or ``(0, I)``.
     """
-    L_Y, L_Y_inv, weights, factors = _information_at(pair, omega)
-    if len(omega) == 1:  # one problem: the single-problem path of the same assembly
-        fused = weighted_fusion(pair.x[0], L_Y[0], weights[0], L_Y_inv[0],
-                                type(factors)(*(f[0] for f in factors)))
-        return fused.x[None], fused.P[None], fused.gains[None]
-    fused = weighted_fusion(pair.x, L_Y, weights, L_Y_inv, factors)
-    return fused.x, fused.P, fused.gains
+    n = pair.x.shape[-1]
+    G = _stacked_factor(pair.La, pair.Lb, omega, 1.0 - omega)
+    G_inv = lower_inverse_stack(G)
+    Aa, Ab = G_inv @ pair.La, G_inv @ pair.Lb
+    X = Aa @ Aa.swapaxes(-1, -2)
+    _, U = np.linalg.eigh(0.5 * (X + X.swapaxes(-1, -2)))
+    # Both Rayleigh quotients from their own factors (no 1 - omega x cancellation)
+    x = _column_squared_norms(Aa.swapaxes(-1, -2) @ U)
+    y = _column_squared_norms(Ab.swapaxes(-1, -2) @ U)
+    w = omega[:, None]
+    a_part, b_part = w * x * x, (1.0 - w) * y * y
+    with np.errstate(invalid="ignore", divide="ignore"):
+        total = a_part + b_part
+        kb = np.where(total > 0.0, a_part / total, w)
+        ka = np.where(total > 0.0, b_part / total, 1.0 - w)
+    eye = np.broadcast_to(np.eye(n), G.shape)
+    b_reference = (omega >= 0.5)[:, None, None]
+    small = np.where(b_reference, ka[:, None, :], kb[:, None, :])
+    K_small = G @ ((U * small) @ U.swapaxes(-1, -2)) @ G_inv
+    K_small = np.where(((omega == 0.0) & ~b_reference[:, 0, 0])[:, None, None]
+                       | ((omega == 1.0) & b_reference[:, 0, 0])[:, None, None], 0.0, K_small)
+    Ka = np.where(b_reference, K_small, eye - K_small)
+    Kb = np.where(b_reference, eye - K_small, K_small)
+    return Ka, Kb
+
+
+def _column_squared_norms(A):
+    """Squared Euclidean norms of the columns of ``A`` (..., m, k): shape (..., k)."""
+    return np.square(A).sum(axis=-2)
+
+
+def _extended_product(A, B):
+    """``A @ B`` accumulated in numpy's extended precision (``longdouble``), rounded once.
+
+    On x86 ``longdouble`` carries a 64-bit significand (rounding 5.4e-20); where it is
+    plain double the product is the ordinary one.
+    """
+    return (A.astype(np.longdouble) @ B.astype(np.longdouble)).astype(float)
+
+
+def common_information_bound(pair, omega, Ka, Kb):
+    """``B_t(K)`` (size, n, n) of gains ``Ka + Kb = I`` at ``t = omega / (1 - omega)``.
+
+    ``B_t(K) = Ka Pa Ka^T + Kb Pb Kb^T + t Ka Pa Pb^-1 Pa Ka^T + Kb Pb Pa^-1 Pb Kb^T / t``,
+    assembled from the *inputs'* Cholesky factors as the sum of four outer products
+    ``M M^T`` with ``M = Ka La``, ``Kb Lb``, ``sqrt(t) (Ka Pa) Lb^-T``,
+    ``(Kb Pb) La^-T / sqrt(t)`` (a zero gain contributes nothing). It bounds the error
+    covariance of these gains for every admissible common information
+    (``docs/methods/ici.rst``), whatever rounding went into the gains.
+    """
+    La_inv, Lb_inv = lower_inverse_stack(pair.La), lower_inverse_stack(pair.Lb)
+    # The products of the gains with the inputs cancel (|Ka| |Pa| can exceed |Ka Pa| by
+    # orders of magnitude at condition numbers of 1e9 and more): they are accumulated in
+    # extended precision and rounded once, so each is correct to rounding of its own size.
+    KaPa, KbPb = _extended_product(Ka, pair.Pa), _extended_product(Kb, pair.Pb)
+    root_t = np.sqrt(omega)[:, None, None]
+    root_s = np.sqrt(1.0 - omega)[:, None, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        M3 = np.where((omega > 0.0)[:, None, None] & (omega < 1.0)[:, None, None],
+                      (root_t / root_s) * (KaPa @ Lb_inv.swapaxes(-1, -2)), 0.0)
+        M4 = np.where((omega > 0.0)[:, None, None] & (omega < 1.0)[:, None, None],
+                      (root_s / root_t) * (KbPb @ La_inv.swapaxes(-1, -2)), 0.0)
+    P = np.zeros(Ka.shape)
+    for M in (_extended_product(Ka, pair.La), _extended_product(Kb, pair.Lb), M3, M4):
+        P += M @ M.swapaxes(-1, -2)
+    return 0.5 * (P + P.swapaxes(-1, -2))
+
+
+def inverse_ci_fusion(pair, omega):
+    """ICI at ``omega`` (size,): ``(x, P, gains)``, ``P`` the bound ``B_t(K)`` of the gains.
+
+    The gains come from the whitened form (:func:`_whitened_gains`), ``P`` from the gains
+    and the inputs' factors (:func:`common_information_bound`). Raises IllConditionedError
+    where ``P`` is not numerically positive definite (checked by the caller's report).
+    """
+    Ka, Kb = _whitened_gains(pair, omega)
+    xa, xb = pair.x[:, 0], pair.x[:, 1]
+    b_reference = (omega >= 0.5)[:, None]
+    # x = Ka xa + Kb xb = x_ref + K_other (x_other - x_ref)
+    diff_a = (Ka @ (xa - xb)[..., None])[..., 0]
+    diff_b = (Kb @ (xb - xa)[..., None])[..., 0]
+    x = np.where(b_reference, xb + diff_a, xa + diff_b)
+    P = common_information_bound(pair, omega, Ka, Kb)
+    return x, P, np.stack([Ka, Kb], axis=1)
 
 
 def inverse_ci_derivatives(pair, omega, kind, W):

@@ -11,7 +11,9 @@ with ``delta`` on the simplex chosen by Newton's method on the convex problem (3
 request, by the alternating projections of Algorithms 1 and 2). ``rho = 1`` is standard
 CI (``w = delta``), ``rho = 0`` the naive fusion (``w_i = 1``). The returned ``P`` is the
 Theorem 5 bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i`` (see
-``docs/methods/pci.rst``), so it is a bound whatever rounding went into the gains.
+``docs/methods/pci.rst``), so it is a bound whatever rounding went into the gains; it is
+formed from the inputs ``P_i`` in compensated arithmetic (:func:`gains_bound`), so that the
+rounding of their Cholesky factors, amplified by large gains, does not enter it.
 """
 
 from typing import Any, Union
@@ -38,6 +40,7 @@ from ._partial_correlation import (
     alternating_delta,
     check_rho,
     effective_rho,
+    gains_bound,
     newton_delta,
     partial_weights,
     relative_gap,
@@ -62,9 +65,12 @@ def partial_ci(xs: ArrayLike, Ps: ArrayLike, rho: ArrayLike, tol: float = 1e-10,
     (eqs. (24), (33), (34)), ``delta`` on the simplex minimising ``Tr(P)``. ``P`` bounds the
     covariance of the fused error for every joint covariance within the bound; it is
     returned as the Theorem 5 bound of the returned gains, ``sum_i K_i P_i K_i^T / w_i``,
-    which equals eq. (33) in exact arithmetic and stays a bound, up to rounding of the
-    products, for input condition numbers up to 1e12 (the conditioning contract; beyond it
-    the rule answers within the contract or raises IllConditionedError).
+    which equals eq. (33) in exact arithmetic. It is formed from the input covariances
+    (not their Cholesky factors) in compensated arithmetic, so it dominates the worst-case
+    error covariance of the returned gains up to rounding of order ``N eps ||P||``,
+    independently of the condition numbers, for input condition numbers up to 1e12 (the
+    conditioning contract; beyond it the rule answers within the contract or raises
+    IllConditionedError).
 
     * Two estimates: Theorem 3 and Algorithm 1, alternating eqs. (18)-(19),
       ``P = ((1 + gamma rho)^-1 P_1^-1 + (1 + rho / gamma)^-1 P_2^-1)^-1``, with eq. (14),
@@ -100,7 +106,8 @@ def partial_ci(xs: ArrayLike, Ps: ArrayLike, rho: ArrayLike, tol: float = 1e-10,
         by at most ``info["gap"]`` relative.
     solver : {"newton", "alternating"}, optional
         ``"newton"`` (default): minimise ``Tr(P)`` over ``delta`` (problem (35)) by an
-        active-set Newton method on the simplex, stopping each problem at a certified gap;
+        active-set Newton method on the simplex (from 12 estimates on started on the face an
+        interior-point phase finds), stopping each problem at a certified gap;
         a few iterations whatever N and ``rho``, exact on the boundary of the simplex
         (where an estimate is ignored). ``"alternating"``: the paper's alternating
         projections, Algorithm 1 for two estimates and Algorithm 2 for more (linear
@@ -232,8 +239,10 @@ def _partial_ci(est, rho=None, tol=1e-10, max_iter=100, *, solver="newton", delt
         info = {"rule": "fixed"}
     weights = partial_weights(delta, used)
     fused = weighted_fusion(est.x, est.L, weights, L_inv)
-    checked_cholesky(fused.P, "the fused covariance")
-    x, P, gains = fused.x, fused.P, fused.gains
+    x, gains = fused.x, fused.gains
+    # the bound of the returned gains from the inputs themselves (not from L_i L_i^T)
+    P = gains_bound(gains, est.P, weights)
+    checked_cholesky(P, "the fused covariance")
     spread = squared_norms(fused.factors.B)
     trace = squared_norms(fused.factors.R_inv)
     with np.errstate(over="ignore", invalid="ignore"):  # a fixed delta_i = 0, rho_i ~ 1e-300

@@ -91,8 +91,9 @@ def split_covariance_intersection(xs: ArrayLike, Ps_independent: ArrayLike,
         ``info["gains"]`` holds ``K_1`` (..., n, n) and ``K_2`` (..., n, m) with
         ``x = K_1 x_1 + K_2 x_2``), and ``info`` with ``P_independent``, ``P_dependent``,
         ``criterion``, ``value``, ``rule`` (``"optimal"`` or ``"sequential"`` for N > 2),
-        ``iterations``, ``gap`` and ``converged`` (gap at most 1e-9); for N > 2 also
-        ``omegas`` (..., N - 1).
+        ``iterations``, ``gap`` and ``converged`` (gap at most 1e-9; at condition numbers
+        of 1e9 and above the gap is an estimate, not a bound, see "Measured limits" in
+        ``docs/methods/split_ci.rst``); for N > 2 also ``omegas`` (..., N - 1).
 
     Raises
     ------

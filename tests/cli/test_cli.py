@@ -4,10 +4,16 @@ import io
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from cifilter import available_methods
-from cifilter.cli.demo import run_demo, run_network_demo, run_two_tracks
+from cifilter.cli.demo import (
+    network_memory_estimate,
+    run_demo,
+    run_network_demo,
+    run_two_tracks,
+)
 from cifilter.cli.main import main
 
 
@@ -101,6 +107,14 @@ def test_unknown_demo_method_is_an_error():
     (["reproduce", "weng", "--runs", "0"], "argument --runs: must be at least 1"),
     (["reproduce", "naveen", "--plot", "/proc/cifilter-figures"], "argument --plot"),
     (["reproduce"], "required: PAPER"),
+    (["demo", "--scenario", "ring", "--nodes", "1"], "--nodes: nodes must be >= 3, got 1"),
+    (["demo", "--scenario", "chain", "--nodes", "1"], "--nodes: nodes must be >= 2, got 1"),
+    # refused from an estimate of the memory before any work (it grew to 24 GB before)
+    (["demo", "--scenario", "ring", "--nodes", "100000"], "--nodes 100000: the study would "
+                                                          "need about"),
+    # a closed port: refused at once (it waited 30 s, then printed a traceback)
+    (["demo", "--scheduler", "tcp://127.0.0.1:1"], "--scheduler: cannot connect to "
+                                                   "'tcp://127.0.0.1:1' within 5 s"),
 ])
 def test_bad_arguments_exit_2_with_one_line(arguments, message, capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -109,6 +123,15 @@ def test_bad_arguments_exit_2_with_one_line(arguments, message, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err
     assert err.startswith("python -m cifilter")
+
+
+def test_memory_estimate_grows_as_the_square_of_the_nodes():
+    small = network_memory_estimate(10_000, 4, 40, 5) - 250e6
+    assert network_memory_estimate(6, 4, 40, 5) < 300e6  # the default demo always runs
+    assert 3.9 < (network_memory_estimate(20_000, 4, 40, 5) - 250e6) / small < 4.1
+    assert network_memory_estimate(100_000, 4, 40, 5) > 1e13
+    with pytest.raises(ValueError, match="nodes must be >= 1"):
+        network_memory_estimate(0, 4, 40, 5)
 
 
 def test_unwritable_plot_path_fails_before_the_work_without_traceback(tmp_path):
@@ -134,3 +157,73 @@ def test_network_demo_on_two_dask_workers_gives_the_same_table():
     strip = [[{k: v for k, v in row.items() if k != "us_per_fusion"} for row in rows]
              for rows in (here, there)]
     assert strip[0] == strip[1]
+
+
+# --------------------------------------------------- the verdict's band (issue 21, item 7)
+def test_pooled_band_is_the_t_interval_of_the_run_means():
+    from scipy import stats
+
+    from cifilter.cli.demo import pooled_anees_band
+
+    rng = np.random.default_rng(1)
+    nees = rng.chisquare(4, size=(10, 40, 6))
+    means = nees.mean(axis=(1, 2))  # by hand: the run means and their t interval
+    half = stats.t.ppf(0.975, 9) * np.std(means, ddof=1) / np.sqrt(10)
+    pooled, lower, upper = pooled_anees_band(nees, 4)
+    assert pooled == pytest.approx(nees.mean(), rel=1e-12)
+    assert (lower, upper) == pytest.approx((4 - half, 4 + half), rel=1e-12)
+    assert pooled_anees_band(nees[:1], 4)[1:] == (4.0, 4.0)  # one run: no spread
+
+
+def test_pooled_band_covers_95_percent_with_correlated_nodes():
+    """Consistent NEES whose nodes and steps within a run are strongly correlated (a
+    common factor per run): the band holds the pooled mean in about 95% of studies. One
+    step's chi-square bounds [2.44, 5.93], used before, held it in every study (a band
+    for another statistic)."""
+    from cifilter.cli.demo import pooled_anees_band
+
+    rng = np.random.default_rng(2)
+    inside, inside_old, studies = 0, 0, 2000
+    for _ in range(studies):
+        shared = rng.standard_normal((10, 1, 1, 4))  # one error shared by a run's values
+        own = rng.standard_normal((10, 40, 6, 4))
+        errors = np.sqrt(0.7) * shared + np.sqrt(0.3) * own  # each value chi-square(4)
+        nees = np.sum(errors**2, axis=-1)
+        pooled, lower, upper = pooled_anees_band(nees, 4)
+        inside += lower <= pooled <= upper
+        inside_old += 2.44 <= pooled <= 5.93
+    # approximate: run means of chi-square values are skewed, so a t interval of 10 of
+    # them covers a little less than 95% (1852 of 2000 here; docs/cli.rst says so)
+    assert 0.90 < inside / studies < 0.97
+    assert inside_old / studies > 0.99
+
+
+def test_demo_verdict_uses_the_pooled_band_and_keeps_the_step_share():
+    rows = {row["method"]: row for row in run_network_demo(
+        seed=0, runs=10, steps=40, methods=["ci", "cu", "naive"], out=io.StringIO())}
+    for row in rows.values():
+        assert row["lower"] < 4 < row["upper"]
+        assert (row["step_lower"], row["step_upper"]) == pytest.approx((2.44, 5.93), abs=0.01)
+        assert 0 <= row["inside"] <= 1
+        assert row["trace_position"] + row["trace_velocity"] == pytest.approx(
+            row["mean_trace"], rel=1e-12)
+        assert row["rmse_velocity"] > 0
+    assert rows["cu"]["verdict"] == "conservative"  # 1.62, far below its band
+    assert rows["naive"]["verdict"] == "overconfident"
+
+
+def test_two_tracks_prints_the_network_demos_columns():
+    network, two = io.StringIO(), io.StringIO()
+    run_network_demo(runs=3, steps=5, methods=["ci"], out=network)
+    rows = run_two_tracks(runs=3, steps=20, methods=["ci"], out=two)
+
+    def header(text):
+        lines = text.getvalue().splitlines()
+        at = next(i for i, line in enumerate(lines) if line.startswith("method "))
+        return [line.split() for line in lines[at - 1:at + 1]]
+
+    assert header(two) == header(network)
+    assert "guarantee: what the rule's P is" in two.getvalue()
+    ci = rows[-1]
+    assert ci["trace_position"] + ci["trace_velocity"] == pytest.approx(ci["mean_trace"])
+    assert ci["anees"] == pytest.approx(ci["mean_nees"], rel=1e-12)  # the same pooled mean

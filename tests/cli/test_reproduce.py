@@ -423,4 +423,5 @@ def test_reproduce_ajgl_prints_the_papers_numbers_and_writes_figs_3_to_8(tmp_pat
     for text in ("0.6000", "0.4124", "0.0418", "0.8532", "0.8841", "0.6949", "0.1370",
                  "0.6927", "[0.6076 0.5772; 0.5772 1.5483]", "[2.1216 1.1806; 1.1806 1.2427]"):
         assert text in out
-    assert sorted(p.name for p in tmp_path.iterdir()) == [f"fig{i}.png" for i in range(3, 9)]
+    # prefixed like the other reproductions (naveen_fig2.png, weng_...): ajgl_fig3.png ...
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"ajgl_fig{i}.png" for i in range(3, 9)]

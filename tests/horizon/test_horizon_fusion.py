@@ -59,14 +59,6 @@ def test_horizon_zero_is_the_plain_rule_bit_for_bit():
     np.testing.assert_array_equal(h.omega, plain.info["delta"])
 
 
-def test_three_estimates_and_batches():
-    Ps = [np.diag([1.0, 2.0]), np.diag([2.0, 1.0]), np.diag([1.5, 1.5])]
-    pairs = [(np.zeros(2), P) for P in Ps]
-    r = fuse(pairs, method="ci", horizon=4, model=MODEL)
-    np.testing.assert_allclose(r.omega, horizon_weights(Ps, F_DYN, Q_DYN, H_A, R_A, 4).omega,
-                               atol=0)
-
-
 @pytest.mark.parametrize("kwargs, error, match", [
     (dict(method="ei", horizon=2, model=MODEL), ValueError, "does not support horizon="),
     (dict(method="ci", horizon=2), ValueError, "needs the model"),

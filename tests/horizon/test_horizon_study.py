@@ -104,17 +104,10 @@ def test_batch_optimum_never_above_recursive_at_any_horizon(system, criterion):
 
 
 # ----------------------------------------------------------------- the result
-def test_study_result_fields_and_plot():
-    import matplotlib.pyplot as plt
-
+def test_a_batched_study_refuses_to_plot():
+    # the fields and the plot's lines are checked against an independent filter in
+    # test_horizon_scales.py::test_study_values_against_an_independent_filter_and_its_plot
     PA, PB = local_bounds_at_zero()
-    s = horizon_study(PA, PB, F_DYN, Q_DYN, H_A, R_A, [0, 2, 7], "det")
-    assert s.horizons.tolist() == [0, 2, 7]
-    assert s.omega.shape == s.batch.shape == s.recursive.shape == (3,)
-    assert s.P_batch.shape == (3, 2, 2)
-    fig = s.plot(label="A")
-    assert len(fig.axes) == 2
-    plt.close(fig)
     batched = horizon_study(np.stack([PA, PB]), PB, F_DYN, Q_DYN, H_A, R_A, 2)
     assert batched.omega.shape == (2, 3)
     with pytest.raises(ValueError, match="batched"):

@@ -58,8 +58,13 @@ def test_ready_scenarios():
         assert get_scenario(name).name == name
     with pytest.raises(ValueError, match="unknown scenario"):
         get_scenario("star")
-    # the sensors are part of the scenario: the same whatever the Monte Carlo seed
-    assert np.array_equal(naveen_taylor().R[3], naveen_taylor().R[3])
+    # the sensors are part of the scenario: fixed by sensor_seed (default 2), the same on
+    # every construction, different for another sensor_seed
+    first, again = naveen_taylor().R, naveen_taylor().R
+    assert len(first) == 6 and all(np.array_equal(a, b) for a, b in zip(first, again))
+    assert all(np.array_equal(a, b) for a, b in zip(first, naveen_taylor(sensor_seed=2).R))
+    assert not any(np.array_equal(a, b) for a, b in zip(first, naveen_taylor(sensor_seed=3).R))
+    assert len({tuple(np.ravel(R)) for R in first}) == 6  # six different sensors
 
 
 def test_scenario_from_the_users_filters_and_graph():

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from helpers import fused_bound_tolerance
 from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
@@ -100,7 +101,8 @@ def test_the_fused_covariance_bounds_the_returned_gains_for_the_worst_joint(args
     except IllConditionedError:
         return  # numerically singular fused information (denormal weights of tiny inputs)
     assert_unbiased(result.gains)
-    assert_bound_holds(result.P, result.gains, Ps)
+    # the information-form bound is good to cond * eps (docs/conventions.rst)
+    assert_bound_holds(result.P, result.gains, Ps, tol=fused_bound_tolerance(Ps))
 
 
 @given(covariance_sets(3, 2), arrays(float, (3,), elements=st.floats(0.01, 1.0)))

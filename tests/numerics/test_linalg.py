@@ -95,3 +95,27 @@ def test_indefinite_matrices_say_not_positive_definite_with_the_smallest_eigenva
 def test_cholesky_success_path_is_unchanged_for_well_conditioned_stacks():
     P = spd((3, 2), 4)
     np.testing.assert_array_equal(cholesky(P, "P"), np.linalg.cholesky(P))
+
+
+# ------------------------------------------------------------------ single matrices (LAPACK path)
+@pytest.mark.parametrize("A, message", [
+    (np.array([[1.0, 2.0], [2.0, 1.0]]), r"not positive definite \(smallest eigenvalue -1\b"),
+    (np.array([[-1.0]]), r"not positive definite \(smallest eigenvalue -1\b"),
+    # leading 3x3 block positive definite: the factorisation fails only at the last pivot
+    (np.diag([4.0, 3.0, 2.0, -1e-3]), r"not positive definite \(smallest eigenvalue -0\.001"),
+    (np.array([[1.0, np.nan], [np.nan, 1.0]]), "non-finite"),
+    (np.array([[np.inf, 0.0], [0.0, 1.0]]), "non-finite"),
+])
+def test_one_matrix_is_rejected_when_it_is_not_positive_definite(A, message):
+    """The single-matrix path (LAPACK called directly) must reject, not return a partial
+    factor: each of these was accepted when that path's check was removed."""
+    with pytest.raises(ValueError, match=message):
+        cholesky(A, "P")
+    with pytest.raises(ValueError, match=message):
+        mahalanobis_sq(np.ones(A.shape[0]), A)
+
+
+def test_one_matrix_and_a_stack_of_it_give_the_same_factor():
+    A = spd((), 4)
+    np.testing.assert_allclose(cholesky(A), cholesky(A[None])[0], rtol=1e-14)
+    np.testing.assert_allclose(cholesky(A) @ cholesky(A).T, A, rtol=1e-13)

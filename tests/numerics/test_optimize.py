@@ -10,6 +10,7 @@ from hypothesis.extra.numpy import arrays
 from scipy.optimize import minimize
 
 from cifilter._numerics.optimize import (
+    INTERIOR_MIN_COUNT,
     minimize_convex_interval,
     minimize_convex_segment,
     minimize_convex_simplex,
@@ -581,3 +582,190 @@ def test_segment_minimiser_equals_the_simplex_of_two_and_one_problem_its_batch()
         assert steps[0] == iterations[k]
     np.testing.assert_array_equal(w[1], [1.0, 0.0])
     np.testing.assert_array_equal(w[2], [0.0, 1.0])
+
+
+# ------------------------------------------------------------------ many weights (issue 21, item 4)
+def exact_ci_trace_gap(w, a, digits=50):
+    """The Frank-Wolfe gap of ``ci_diagonal_trace(a)`` at the float weights ``w`` in
+    ``digits``-digit arithmetic, relative to the exact objective: a certified bound on the
+    relative excess of ``f(w)`` over the exact minimum, free of the solver's rounding."""
+    import mpmath
+
+    with mpmath.workdps(digits):
+        weights = [mpmath.mpf(float(v)) for v in w]
+        columns = [[mpmath.mpf(float(v)) for v in a[:, k]] for k in range(a.shape[1])]
+        s = [mpmath.fsum(wi * ak for wi, ak in zip(weights, column)) for column in columns]
+        f = mpmath.fsum(1 / sk for sk in s)
+        g = [-mpmath.fsum(column[i] / sk**2 for column, sk in zip(columns, s))
+             for i in range(len(weights))]
+        gap = mpmath.fsum(wi * gi for wi, gi in zip(weights, g)) - min(g)
+        return float(gap / f)
+
+
+def many_ci_traces(count, seed, spread=2.0):
+    """``ci_diagonal_trace`` of ``count`` random diagonal 3x3 estimates (information values
+    within ``10**+-spread``): the optimum uses a few of them (an exact face)."""
+    rng = np.random.default_rng(seed)
+    return 10.0 ** rng.uniform(-spread, spread, (count, 3))
+
+
+@pytest.mark.parametrize("count", [30, 300])
+def test_simplex_many_weights_converge_in_a_bounded_number_of_iterations(count):
+    # The active-set method alone fixed one weight per iteration from the uniform start:
+    # about `count` iterations (before: 300 weights did not converge in 200). The interior
+    # phase moves every weight at once; its count does not grow with N.
+    a = many_ci_traces(count, seed=count)
+    evaluate, objective = ci_diagonal_trace(a)
+    w, iterations, converged = minimize_convex_simplex(evaluate, objective, count, (),
+                                                       gtol=1e-10)
+    assert converged and iterations <= 30, (converged, iterations)
+    assert (w >= 0).all() and w.sum() == pytest.approx(1.0, abs=4 * count * EPS)
+    support = w > 0
+    assert 1 <= support.sum() <= 10  # an exact face: the others are exactly zero
+    # certified by the gap of the float gradient, and by the exact one (50 digits)
+    f, g, _ = evaluate(w)
+    assert frank_wolfe_gap(w, g) <= 1e-10 * f
+    assert exact_ci_trace_gap(w, a) <= 1e-10
+    # the KKT conditions: one level on the support, none below it elsewhere
+    level = g[support].mean()
+    assert np.abs(g[support] - level).max() <= 1e-9 * abs(level)
+    assert (g[~support] >= level - 1e-9 * abs(level)).all()
+
+
+def test_simplex_many_weights_agree_with_slsqp():
+    count = 40
+    a = many_ci_traces(count, seed=7)
+    evaluate, objective = ci_diagonal_trace(a)
+    w, iterations, converged = minimize_convex_simplex(evaluate, objective, count, (),
+                                                       gtol=1e-12)
+    assert converged and iterations <= 30
+    reference = simplex_reference(objective, count, [np.full(count, 1 / count)])
+    f = objective(w)
+    assert f <= reference * (1 + 1e-12)  # no worse than SLSQP's best ...
+    assert f >= reference * (1 - 1e-9)  # ... which is within its tolerance of it
+    assert exact_ci_trace_gap(w, a) <= 1e-12
+
+
+@pytest.mark.parametrize("count", [INTERIOR_MIN_COUNT, INTERIOR_MIN_COUNT + 2])
+@pytest.mark.parametrize("gtol", [0.0, 1e-10])
+def test_simplex_interior_phase_reaches_the_exact_minimum_of_quadratics(count, gtol):
+    # brute force over the 2^count supports
+    rng = np.random.default_rng(count)
+    for _ in range(2):
+        A = random_spd(rng, count, condition=1e4)
+        c = 0.5 * rng.standard_normal(count)
+        evaluate, objective = quadratic(A, c)
+        w, iterations, converged = minimize_convex_simplex(evaluate, objective, count, (),
+                                                           gtol=gtol)
+        assert converged and iterations <= 30
+        best = exact_quadratic_minimum(A, c)
+        assert objective(w) - best <= 1e-12 * best + 64 * EPS * best
+
+
+@pytest.mark.parametrize("count", [INTERIOR_MIN_COUNT, 40])
+def test_simplex_interior_phase_gives_a_face_with_exact_zeros(count):
+    # the Euclidean projection onto the simplex: a face known in closed form
+    c = np.linspace(-1.0, 1.0, count)
+    evaluate, objective = quadratic(np.eye(count), c)
+    w, iterations, converged = minimize_convex_simplex(evaluate, objective, count, ())
+    expected = euclidean_projection(c)
+    assert converged and iterations <= 30
+    np.testing.assert_array_equal(w == 0.0, expected == 0.0)
+    np.testing.assert_allclose(w, expected, rtol=0, atol=1e-12)
+
+
+def test_simplex_interior_phase_shares_ties_to_rounding():
+    # equal inputs (rows 0 and 1, 2 and 3 of the information) have equal weights to rounding
+    a = many_ci_traces(20, seed=3, spread=0.5)
+    a[1], a[3] = a[0], a[2]
+    evaluate, objective = ci_diagonal_trace(a)
+    w, _, converged = minimize_convex_simplex(evaluate, objective, 20, (), gtol=1e-12)
+    assert converged
+    assert abs(w[0] - w[1]) <= 1e-12 and abs(w[2] - w[3]) <= 1e-12
+
+
+def test_simplex_interior_phase_batch_equals_the_problems_one_by_one():
+    count, size = INTERIOR_MIN_COUNT + 2, 4
+    a = np.stack([many_ci_traces(count, seed=20 + k) for k in range(size)])
+
+    def evaluate(w, index):
+        out = [ci_diagonal_trace(a[k])[0](wk) for k, wk in zip(index, w)]
+        return tuple(np.stack(parts) for parts in zip(*out))
+
+    def objective(w, index):
+        return np.array([ci_diagonal_trace(a[k])[1](wk) for k, wk in zip(index, w)])
+
+    w, iterations, converged = minimize_convex_simplex(evaluate, objective, count, (size,),
+                                                       gtol=1e-12, subset=True)
+    assert converged.all()
+    for k in range(size):
+        e1, o1 = ci_diagonal_trace(a[k])
+        w1, iterations1, ok = minimize_convex_simplex(e1, o1, count, (), gtol=1e-12)
+        assert ok and iterations1 == iterations[k]
+        np.testing.assert_allclose(w[k], w1, rtol=0, atol=1e-12)
+
+
+def test_simplex_interior_phase_respects_the_iteration_limit():
+    a = many_ci_traces(50, seed=1)
+    evaluate, objective = ci_diagonal_trace(a)
+    for limit in (1, 3):
+        w, iterations, converged = minimize_convex_simplex(evaluate, objective, 50, (),
+                                                           gtol=1e-12, max_iter=limit)
+        assert not converged and iterations == limit
+        assert (w >= 0).all() and w.sum() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("count", [INTERIOR_MIN_COUNT, 20])
+def test_simplex_interior_phase_keeps_identical_inputs_uniform(count):
+    def evaluate(w):
+        return 2.0 + 0.0 * w.sum(axis=-1), np.ones(w.shape), np.zeros(w.shape + (count,))
+
+    def objective(w):
+        return 2.0 + 0.0 * w.sum(axis=-1)
+
+    for gtol in (0.0, 1e-10):
+        w, iterations, converged = minimize_convex_simplex(evaluate, objective, count, (3,),
+                                                           gtol=gtol)
+        assert converged.all() and (iterations == 0).all()
+        np.testing.assert_array_equal(w, np.full((3, count), 1.0 / count))
+
+
+def steep_ci_trace(a, rho):
+    """``ci_diagonal_trace(a)`` of the weights ``w_i = d_i / (rho + (1 - rho) d_i)`` of
+    partial CI (eq. (24) of Wu, Cai & Fu), minimised over ``d``: convex (a convex decreasing
+    function of concave weights) and steep next to the boundary for small ``rho`` (a ``d_i``
+    of 1e-8 already gives ``w_i`` near 1/2)."""
+
+    def weights(d):
+        den = rho + (1.0 - rho) * d
+        return d / den, rho / den**2, -2.0 * rho * (1.0 - rho) / den**3
+
+    def objective(d):
+        return (1.0 / (weights(d)[0] @ a)).sum(axis=-1)
+
+    def evaluate(d):
+        w, first, second = weights(d)
+        s = w @ a
+        g = -(a / s**2).sum(axis=-1)
+        H = first[:, None] * first[None, :] * 2.0 * np.einsum("ik,jk,k->ij", a, a, 1.0 / s**3)
+        H = H + np.diag(g * second)
+        return objective(d), g * first, 0.5 * (H + H.T)
+
+    return evaluate, objective
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_simplex_interior_phase_keeps_the_weights_a_steep_optimum_needs(seed):
+    # Optimal d_i of order rho look negligible to the crossover's threshold; a face that
+    # drops them is worse than the interior iterate by far more than its gap, and is
+    # refused. (Before that check, 14 of 20 such problems stopped unconverged at 200
+    # iterations, the face lacking weights the optimum needs.)
+    rng = np.random.default_rng(seed)
+    count = INTERIOR_MIN_COUNT + 3
+    a = 10.0 ** rng.uniform(-3.0, 3.0, (count, 2))
+    evaluate, objective = steep_ci_trace(a, 1e-8)
+    d, iterations, converged = minimize_convex_simplex(evaluate, objective, count, (),
+                                                       gtol=1e-10)
+    assert converged and iterations <= 30
+    f, g, _ = evaluate(d)
+    assert frank_wolfe_gap(d, g) <= 1e-10 * f

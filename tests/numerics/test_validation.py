@@ -604,3 +604,50 @@ def test_check_psd_weight_matrix():
         check_psd_weight_matrix(np.eye(2) * 1j, 2)
     with pytest.raises(ValueError, match=r"^criterion must be positive semidefinite"):
         check_psd_weight_matrix(-np.eye(2), 2)
+
+
+# ------------------------------------------------------------------ pinned tolerances
+# The documented thresholds, written as numbers (not derived from the constants they pin).
+@pytest.mark.parametrize("scale", [1e-12, 1.0, 1e12])
+def test_symmetry_tolerance_is_one_part_in_1e8_of_the_largest_diagonal_entry(scale):
+    """|P - P^T| up to 1e-8 max|P_ii| is rounding (accepted and symmetrised), above is a
+    typo: at every scale, through the checks and through both paths of the front door
+    (float64 arrays take a fast path, nested lists the general one)."""
+    def matrix(asymmetry):  # max diagonal entry 2 (the smaller one is 1)
+        return scale * np.array([[2.0, 0.5], [0.5 + asymmetry, 1.0]])
+
+    accepted, rejected = matrix(0.9 * 2e-8), matrix(1.1 * 2e-8)
+    S = check_symmetric(accepted, "P")
+    np.testing.assert_array_equal(S, S.T)
+    with pytest.raises(ValueError, match="not symmetric"):
+        check_symmetric(rejected, "P")
+    other = scale * np.eye(2)
+    for P, ok in ((accepted, True), (rejected, False)):
+        for form in (np.asarray, lambda A: A.tolist()):
+            pairs = [(np.zeros(2), form(P)), (np.ones(2), form(other))]
+            if ok:
+                fuse(pairs, method="naive")
+            else:
+                with pytest.raises(ValueError, match=r"P\[0\] is not symmetric"):
+                    fuse(pairs, method="naive")
+
+
+@pytest.mark.parametrize("where", ["mean", "covariance"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_non_finite_input_is_rejected_on_the_fast_path(where, bad):
+    x, P = np.zeros(2), np.eye(2)
+    if where == "mean":
+        x = np.array([bad, 0.0])
+    else:
+        P = np.array([[1.0, 0.0], [0.0, bad]])
+    with pytest.raises(ValueError, match="non-finite"):
+        fuse([(x, P), (np.ones(2), np.eye(2))], method="ci")
+    with pytest.raises(ValueError, match="non-finite"):
+        naive_fusion([x, np.ones(2)], [P, np.eye(2)])
+
+
+def test_semidefinite_tolerance_is_1e_10_of_the_largest_entry():
+    for scale in (1e-6, 1.0, 1e6):
+        check_psd(scale * np.diag([1.0, -0.5e-10]), 2, "Q")  # rounding: accepted
+        with pytest.raises(ValueError, match="Q must be positive semidefinite"):
+            check_psd(scale * np.diag([1.0, -2e-10]), 2, "Q")

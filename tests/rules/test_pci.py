@@ -2,6 +2,7 @@
 
 import io
 
+import mpmath
 import numpy as np
 import pytest
 from hypothesis import given
@@ -630,3 +631,30 @@ def test_two_estimates_at_a_small_scale_are_not_mistaken_for_a_flat_problem():
         assert abs(r.info["delta"][0] - 0.5) > 0.2  # not the middle of the segment
     # rho = 1 is CI, and P_2 >= P_1: the second estimate is ignored exactly
     np.testing.assert_array_equal(partial_ci([np.zeros(3)] * 2, Ps, 1.0).info["delta"], [1, 0])
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.5])
+@pytest.mark.parametrize("seed", range(4))
+def test_p_is_the_bound_of_the_returned_gains_to_rounding_at_condition_1e12(seed, rho):
+    """P = sum_i K_i P_i K_i^T / w_i of the returned gains and the inputs, to N eps ||P||.
+
+    Against the same sum at 50 digits: issue 21, item 2. Formed from the Cholesky factors
+    (L_i L_i^T for P_i) it was off by up to kappa eps ||P||, here up to 1e5 times more."""
+    rng = np.random.default_rng(seed)
+    Ps = []
+    for scale in 10.0 ** rng.uniform(-6, 6, size=3):
+        Q, _ = np.linalg.qr(rng.standard_normal((4, 4)))
+        P = Q @ np.diag(scale * np.logspace(0, 12, 4)) @ Q.T
+        Ps.append(0.5 * (P + P.T))
+    r = partial_ci(np.zeros((3, 4)), Ps, rho)
+    with mpmath.workdps(50):
+        exact = mpmath.zeros(4, 4)
+        for K, P, w in zip(r.gains, Ps, r.weights):
+            if w == 0.0:  # an ignored estimate: zero gain, no term
+                assert not K.any()
+                continue
+            Km = mpmath.matrix(K.tolist())
+            exact += Km * mpmath.matrix(P.tolist()) * Km.T / mpmath.mpf(float(w))
+        difference = np.array([[float(r.P[i, j] - exact[i, j]) for j in range(4)]
+                               for i in range(4)])
+    assert np.abs(difference).max() <= 4 * 3 * np.finfo(float).eps * np.linalg.norm(r.P, 2)

@@ -205,7 +205,7 @@ def _plot(directory, at_zero, at_steady):
         ax.set(xlabel="$\\kappa$", ylabel="optimal $\\omega$", ylim=(-0.02, 1.02),
                title=f"Fig. {first}: optimal omega, fusion at {when}")
         ax.legend()
-        save(fig, f"fig{first}.png")
+        save(fig, f"ajgl_fig{first}.png")
 
         fig, axes = plt.subplots(2, 2, figsize=(9, 6), layout="constrained")
         for column, name in enumerate(("A", "B")):
@@ -217,7 +217,7 @@ def _plot(directory, at_zero, at_steady):
                 ax.set(title=f"filter {name}, {criterion}", xlabel="$\\kappa$")
         axes[0, 0].legend(fontsize="small")
         fig.suptitle(f"Fig. {first + 1}: bounds, fusion at {when}")
-        save(fig, f"fig{first + 1}.png")
+        save(fig, f"ajgl_fig{first + 1}.png")
 
         fig, ax = plt.subplots(figsize=(8, 5), layout="constrained")
         for P, style, label in ((PA, "-", "$P^A$"), (PB, ":", "$P^B$")):
@@ -236,5 +236,5 @@ def _plot(directory, at_zero, at_steady):
         ax.set(aspect="equal", xlabel="$\\tilde x_1$", ylabel="$\\tilde x_2$",
                title=f"Fig. {first + 2}: ellipses, fusion at {when}")
         ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.02, 1.0))
-        save(fig, f"fig{first + 2}.png")
+        save(fig, f"ajgl_fig{first + 2}.png")
     return written
