@@ -457,14 +457,10 @@ def _single_horizon_terms(model, horizon, n, wanted):
                                                     "the information Gamma": Gamma,
                                                     "the transition Psi": Psi})
             step += 1
-            if finder is None:
-                continue
-            if finder.observe(step, (P_c, Psi, Gamma, e), log_scale,
-                              not np.array_equal(Gamma, Gamma_before)) is not None:
-                step, periods = _skip(step, horizon, wanted, finder.found)
-                log_scale += periods * finder.found[1]
-            elif step == MAX_PLAIN_STEPS and horizon > MAX_PLAIN_STEPS:
-                raise _no_steady_state(horizon)
+            if finder is not None:
+                step, log_scale = _watch(finder, step, (P_c, Psi, Gamma, e), log_scale,
+                                         not np.array_equal(Gamma, Gamma_before), horizon,
+                                         wanted)
     return found
 
 
@@ -535,15 +531,23 @@ def horizon_terms(model, horizon, n, collect=None):
                 log_scale = np.broadcast_to(log_scale, batch)
                 e = np.broadcast_to(e, batch)
             step += 1
-            if finder is None:
-                continue
-            if finder.observe(step, (P_c, Psi, Gamma, e), log_scale,
-                              not np.array_equal(Gamma, Gamma_before)) is not None:
-                step, periods = _skip(step, horizon, wanted, finder.found)
-                log_scale = log_scale + periods * finder.found[1]
-            elif step == MAX_PLAIN_STEPS and horizon > MAX_PLAIN_STEPS:
-                raise _no_steady_state(horizon)
+            if finder is not None:
+                step, log_scale = _watch(finder, step, (P_c, Psi, Gamma, e), log_scale,
+                                         not np.array_equal(Gamma, Gamma_before), horizon,
+                                         wanted)
     return found if collect is not None else found[0]
+
+
+def _watch(finder, step, state, log_scale, gamma_changed, horizon, wanted):
+    """The steady-cycle watch after a step of the recursion: ``(step, log_scale)``, moved on
+    by whole periods once the state repeats; a horizon beyond ``MAX_PLAIN_STEPS`` whose
+    recursion has not repeated by then is refused."""
+    if finder.observe(step, state, log_scale, gamma_changed) is not None:
+        step, periods = _skip(step, horizon, wanted, finder.found)
+        return step, log_scale + periods * finder.found[1]
+    if step == MAX_PLAIN_STEPS and horizon > MAX_PLAIN_STEPS:
+        raise _no_steady_state(horizon)
+    return step, log_scale
 
 
 def propagated_bound(terms, S_inverse):
