@@ -9,9 +9,11 @@ neighbours: a rule that assumes independent errors counts it again and again (da
 incest) and becomes overconfident; Covariance Intersection stays conservative. The demo
 runs every registered rule on the same simulated data, through
 :func:`cifilter.montecarlo.run` (in process, or on Dask with ``--workers``/``--scheduler``),
-and scores them with :mod:`cifilter.metrics`: RMSE, the ANEES over the runs with its
-two-sided chi-square bounds, the share of steps inside them, the mean trace of ``P``, a
-verdict and the time per fusion.
+and scores them with :func:`cifilter.network.summarize`: position and velocity RMSE, the
+pooled ANEES with the band in which a consistent filter's lies
+(:func:`cifilter.metrics.pooled_anees_band`) and a verdict, the share of steps inside one
+step's chi-square bounds, the mean traces of ``P``'s position and velocity blocks and the
+time per fusion.
 
 ``--scenario two-tracks`` is the earlier demo: two trackers with different sensors, their
 tracks fused by every rule *without* feedback (:func:`run_two_tracks`).
@@ -23,6 +25,7 @@ Rules that need knowledge a real node lacks (``"optimal"``: the true joint covar
 
 import os
 import sys
+import textwrap
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -36,7 +39,13 @@ from .. import metrics
 from .._numerics.validation import as_rng, check_int
 from ..filters.kalman import KalmanFilter
 from ..network.graph import Scenario, constant_velocity_model, get_scenario
-from ..network.study import NetworkStudy, summarize
+from ..network.study import (
+    REFERENCES,
+    NetworkStudy,
+    format_summary,
+    score_track,
+    summarize,
+)
 from ..registry import available_methods, fuse, get_method
 
 if TYPE_CHECKING:  # Dask is optional, imported only when a cluster is asked for
@@ -46,10 +55,8 @@ __all__ = [
     "DEMO_CHUNK_SIZE",
     "DemoData",
     "constant_velocity_model",
-    "format_network_table",
     "format_table",
     "network_memory_estimate",
-    "pooled_anees_band",
     "run_demo",
     "run_network_demo",
     "run_two_tracks",
@@ -244,24 +251,13 @@ def _fuse_all(data, methods, rng):
 
 
 def _network_columns(x, P, truth):
-    """The network demo's columns for the two tracks (runs, steps): velocity RMSE, the
-    pooled ANEES band and verdict, the share of steps in one step's bounds, and the
-    traces of P's position and velocity blocks."""
-    x, truth = np.asarray(x, dtype=float), np.asarray(truth, dtype=float)
-    P = np.broadcast_to(P, x.shape + x.shape[-1:])
-    velocity = [i for i in range(x.shape[-1]) if i not in POSITION]
-    nees = metrics.nees(truth, x, P)
-    pooled, lower, upper = pooled_anees_band(nees, x.shape[-1])
-    diagonal = np.diagonal(P, axis1=-2, axis2=-1)
-    return {
-        "rmse_velocity": float(metrics.rmse(truth, x, axis=None, components=velocity)),
-        "anees": pooled, "lower": lower, "upper": upper,
-        "verdict": ("conservative" if pooled < lower else
-                    "overconfident" if pooled > upper else "consistent"),
-        "steps_inside": metrics.anees(nees, x.shape[-1]).share_inside,
-        "trace_position": float(np.mean(np.sum(diagonal[..., POSITION], axis=-1))),
-        "trace_velocity": float(np.mean(np.sum(diagonal[..., velocity], axis=-1))),
-    }
+    """The network demo's columns for the two tracks (runs, steps), from
+    :func:`cifilter.network.score_track`; its ``inside`` (steps in one step's bounds) is
+    ``steps_inside`` here, next to :func:`score`'s share of single NEES values."""
+    columns = score_track(truth, x, P, position_indices=POSITION)
+    columns["steps_inside"] = columns.pop("inside")
+    del columns["rmse"], columns["mean_trace"]  # score's, computed the same way
+    return columns
 
 
 def format_table(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -313,71 +309,103 @@ def _pyplot():
     return plt
 
 
-def _grid(count, columns=3, width=4.2, height=3.6):
+def _grid(count, columns=3, width=4.2, height=3.6, *, top=0.95, bottom=0.85, share=False):
+    """A grid of panels with margins in inches (``top`` above the first row for the
+    figure's title, ``bottom`` below the last for a figure legend), so that they do not
+    grow with the number of rows."""
     plt = _pyplot()
     columns = min(columns, count)
     rows = -(-count // columns)
     # fixed margins: constrained layout costs seconds per figure on a busy machine
-    fig, axes = plt.subplots(rows, columns, figsize=(width * columns, height * rows),
-                             squeeze=False)
-    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.09 if rows > 1 else 0.14,
-                        top=1 - 0.75 / (height * rows), hspace=0.45, wspace=0.3)
+    size = height * rows + top + bottom
+    fig, axes = plt.subplots(rows, columns, figsize=(width * columns, size), squeeze=False,
+                             sharex=share, sharey=share)
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=bottom / size, top=1 - top / size,
+                        hspace=0.45, wspace=0.3)
     for ax in axes.flat[count:]:
         ax.set_visible(False)
     return plt, fig, list(axes.flat[:count])
 
 
+def _title_and_legend(fig, title, handles, labels, *, columns=4):
+    """The figure's title at its top edge and one legend for every panel at its bottom."""
+    height = fig.get_size_inches()[1]
+    fig.suptitle(title, y=1 - 0.12 / height, va="top")
+    fig.legend(handles, labels, loc="lower center", ncol=columns, fontsize="small",
+               frameon=False, bbox_to_anchor=(0.5, 0.05 / height), markerscale=2)
+
+
 def _plot_two_tracks(data, fused, directory):
     """Two figures: per rule a zoom on run 0's track with the 95% ellipses of P, and per
     rule the position errors of the second half of all runs with the ellipse of P."""
-    from .plotting import plot_covariance_ellipse
+    from .plotting import covariance_ellipse
 
     names = list(fused)
     plt, fig, axes = _grid(len(names) + 1)
     steps = data.truth.shape[1]
-    window = slice(max(0, steps // 2 - 6), max(1, steps // 2 + 6))  # a dozen steps
+    window = slice(max(0, steps // 2 - 3), max(1, steps // 2 + 3))  # half a dozen steps
     truth = data.truth[0, window][:, POSITION]
     overview = axes[0]
     overview.plot(data.truth[0, :, 0], data.truth[0, :, 2], "k-", lw=2, label="truth")
     overview.plot(data.x_a[0, :, 0], data.x_a[0, :, 2], ":", label="local A")
     overview.plot(data.x_b[0, :, 0], data.x_b[0, :, 2], ":", label="local B")
     overview.plot(truth[:, 0], truth[:, 1], "rs", ms=3, label="zoomed steps")
-    overview.set(title="run 0: truth and local tracks", xlabel="x [m]", ylabel="y [m]",
-                 aspect="equal")
-    overview.legend(fontsize="x-small")
+    overview.set(title="run 0: truth and local tracks", xlabel="x [m]", ylabel="y [m]")
+    # equal scales without flattening the panel: the limits grow instead of the box shrinking
+    overview.set_aspect("equal", adjustable="datalim")
+    overview.legend(fontsize="x-small", loc="upper left")
     for ax, name in zip(axes[1:], names):
         x = fused[name].x.reshape(data.truth.shape)[0, window]
         P = np.broadcast_to(fused[name].P, data.truth.shape + (4,))[0, window]
         ax.plot(truth[:, 0], truth[:, 1], "k.-", lw=1.5, label="truth")
-        ax.plot(x[:, 0], x[:, 2], "C0.-", lw=1, label=f"{name} (fused)")
+        ax.plot(x[:, 0], x[:, 2], "C0.-", lw=1, label="fused estimate")
         for k in range(x.shape[0]):
-            plot_covariance_ellipse(ax, P[k][np.ix_(POSITION, POSITION)], x[k, POSITION],
-                                    color="C3", lw=0.8,
-                                    label="95% ellipse of P" if k == 0 else None)
+            curve = covariance_ellipse(P[k][np.ix_(POSITION, POSITION)], x[k, POSITION])
+            ax.plot(curve[0], curve[1], color="C3", lw=0.8,
+                    label="95% ellipse of P" if k == 0 else None)
         ax.set(title=f"{name}: steps {window.start}-{window.stop - 1} of run 0",
-               xlabel="x [m]", ylabel="y [m]", aspect="equal")
-        ax.legend(fontsize="x-small", loc="best")
-    fig.suptitle("two-track demo: fused tracks (zoom) and the 95% ellipse of each rule's P")
+               xlabel="x [m]", ylabel="y [m]")
+    # one scale for the rules' panels: the same limits, then equal aspect in each
+    low = np.min([ax.dataLim.min for ax in axes[1:]], axis=0)
+    high = np.max([ax.dataLim.max for ax in axes[1:]], axis=0)
+    pad = 0.05 * (high - low)
+    for ax in axes[1:]:
+        ax.set(xlim=(low[0] - pad[0], high[0] + pad[0]),
+               ylim=(low[1] - pad[1], high[1] + pad[1]))
+        ax.set_aspect("equal", adjustable="datalim")
+    _title_and_legend(fig, "two-track demo: the fused tracks of run 0 (zoom) and the 95% "
+                      "ellipse of each rule's P at every step (the same scale in every "
+                      "rule's panel)",
+                      *axes[1].get_legend_handles_labels(), columns=3)
     tracks = directory / "two_tracks.png"
     fig.savefig(tracks, dpi=110)
     plt.close(fig)
 
-    plt, fig, axes = _grid(len(names))
+    # one scale for every panel, so that the ellipses compare at a glance
     half = steps // 2  # second half of the run: near the steady state
-    for ax, name in zip(axes, names):
+    errors, ellipses = {}, {}
+    for name in names:
         x = fused[name].x.reshape(data.truth.shape)
-        error = (x[:, half:] - data.truth[:, half:])[..., POSITION].reshape(-1, 2)
+        errors[name] = (x[:, half:] - data.truth[:, half:])[..., POSITION].reshape(-1, 2)
         P = np.broadcast_to(fused[name].P, data.truth.shape + (4,))[0, -1]
-        ax.plot(error[:, 0], error[:, 1], ".", ms=2, alpha=0.5, label="errors (2nd half)")
-        plot_covariance_ellipse(ax, P[np.ix_(POSITION, POSITION)], color="C3",
-                                label="95% ellipse of P")
-        ax.set(title=name, xlabel="error x [m]", ylabel="error y [m]", aspect="equal")
-        ax.legend(fontsize="x-small", loc="upper right")
-    fig.suptitle("two-track demo: fused position errors and the 95% ellipse of each rule's P")
-    errors = directory / "two_tracks_errors.png"
-    fig.savefig(errors, dpi=110)
+        ellipses[name] = covariance_ellipse(P[np.ix_(POSITION, POSITION)])
+    reach = 1.05 * max(max(np.abs(errors[name]).max(), np.abs(ellipses[name]).max())
+                       for name in names)
+    plt, fig, axes = _grid(len(names), height=4.0, share=True)
+    for ax, name in zip(axes, names):
+        ax.plot(errors[name][:, 0], errors[name][:, 1], ".", ms=2, alpha=0.5,
+                label=f"errors of all runs, steps {half + 1}-{steps}")
+        ax.plot(ellipses[name][0], ellipses[name][1], color="C3", label="95% ellipse of P")
+        ax.set(title=name, xlabel="error x [m]", ylabel="error y [m]", aspect="equal",
+               xlim=(-reach, reach), ylim=(-reach, reach))
+        ax.tick_params(labelbottom=True, labelleft=True)
+    _title_and_legend(fig, "two-track demo: fused position errors and the 95% ellipse of "
+                      "each rule's P (the same scale in every panel)",
+                      *axes[0].get_legend_handles_labels(), columns=2)
+    errors_path = directory / "two_tracks_errors.png"
+    fig.savefig(errors_path, dpi=110)
     plt.close(fig)
-    return [tracks, errors]
+    return [tracks, errors_path]
 
 
 def run_two_tracks(seed: int = 0, runs: int = 20, steps: int = 100,
@@ -407,8 +435,10 @@ def run_two_tracks(seed: int = 0, runs: int = 20, steps: int = 100,
         ``inside`` (share of single NEES values under the 95% chi-square quantile),
         ``mean_trace`` and ``time`` (or ``error``), and the network demo's columns
         ``rmse_velocity``, ``anees``, ``lower``, ``upper``, ``verdict`` (the pooled band,
-        :func:`pooled_anees_band`), ``steps_inside``, ``trace_position`` and
-        ``trace_velocity``: the printed table has the network demo's columns.
+        :func:`cifilter.metrics.pooled_anees_band`), ``steps_inside`` (between
+        ``step_lower`` and ``step_upper``), ``trace_position`` and ``trace_velocity``
+        (:func:`cifilter.network.score_track`): the printed table has the network demo's
+        columns.
 
     Examples
     --------
@@ -431,11 +461,11 @@ def run_two_tracks(seed: int = 0, runs: int = 20, steps: int = 100,
         f"(sigma x, y = 10, 2 m) and sensor B (3, 8 m);\n{runs} runs x {steps} steps, seed "
         f"{seed}. The tracks are correlated through the common process noise and fused "
         "without feedback.\n"
-        f"{_network_legend(runs, 4, nodes=False)}\n",
+        f"{_network_legend(runs, 4, steps, nodes=False)}\n",
         file=out,
     )
     fusions = runs * steps  # one batched call fuses every run and step
-    print(format_network_table([
+    print(format_summary([
         row if "error" in row else
         {**row, "inside": row["steps_inside"],
          "us_per_fusion": 1e6 * row["time"] / fusions if row["time"] else 0.0}
@@ -454,150 +484,6 @@ def _directory(plot):
     return directory
 
 
-class _DemoStudy(NetworkStudy):
-    """The network study with the position and velocity parts reported apart: per run,
-    step and node also ``e/velocity_squared_error``, ``e/trace_position`` [m^2] and
-    ``e/trace_velocity`` [(m/s)^2] (the data and the other outputs are the study's own)."""
-
-    def _score(self, out, track, data, runs):
-        super()._score(out, track, data, runs)
-        position = list(self.scenario.position_indices)
-        velocity = [i for i in range(self.scenario.dim) if i not in position]
-        error = track.x - data.truth[:, :, None]
-        diagonal = np.diagonal(track.P, axis1=-2, axis2=-1)
-        name = track.method
-        out[f"{name}/velocity_squared_error"] = np.sum(error[..., velocity] ** 2, axis=-1)
-        out[f"{name}/trace_position"] = np.sum(diagonal[..., position], axis=-1)
-        out[f"{name}/trace_velocity"] = np.sum(diagonal[..., velocity], axis=-1)
-
-
-def pooled_anees_band(nees: ArrayLike, dim: int,
-                      confidence: float = 0.95) -> tuple[float, float, float]:
-    """The pooled ANEES and its band, with the runs as the independent units.
-
-    The NEES of one run's steps and nodes are correlated (the nodes exchange estimates;
-    a step's error carries into the next), so the pooled mean over ``runs x steps x
-    nodes`` values is *not* an average of that many independent chi-square values, and
-    the band of one step's average (:func:`cifilter.metrics.chi2_bounds` with ``runs``
-    values) is far too wide for it. The runs are independent: the run means
-    ``m_r`` (over steps and nodes) are i.i.d. with mean ``dim`` when the filter is
-    consistent, whatever the correlation inside a run. The pooled ANEES is their mean
-    ``m``; the band is the two-sided Student t interval ``dim -+ t_{R-1} s / sqrt(R)``
-    with ``s`` the standard deviation of the run means: ``m`` outside it rejects
-    consistency at the level ``1 - confidence`` (a t test of the mean of ``R`` run means).
-
-    Parameters
-    ----------
-    nees : array_like, shape (runs, ...)
-        NEES values, the independent runs along the first axis.
-    dim : int
-        State dimension (the mean NEES of a consistent filter).
-    confidence : float, optional
-        Probability of the band (default 0.95).
-
-    Returns
-    -------
-    anees : float
-        The pooled mean.
-    lower, upper : float
-        The band around ``dim`` (lower clipped at 0); both ``dim`` for a single run
-        (no spread to estimate: no verdict).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from cifilter.cli.demo import pooled_anees_band
-    >>> rng = np.random.default_rng(0)
-    >>> m, lo, hi = pooled_anees_band(rng.chisquare(4, size=(10, 40, 6)), 4)
-    >>> bool(lo < m < hi), bool(3.5 < lo < 4 < hi < 4.5)
-    (True, True)
-    """
-    values = np.asarray(nees, dtype=float)
-    runs = values.shape[0]
-    means = values.reshape(runs, -1).mean(axis=1)
-    pooled = float(means.mean())
-    if runs < 2:
-        return pooled, float(dim), float(dim)
-    half = float(stats.t.ppf(0.5 + confidence / 2, runs - 1) * means.std(ddof=1)
-                 / np.sqrt(runs))
-    return pooled, max(0.0, dim - half), dim + half
-
-
-def _network_rows(results, scenario):
-    """summarize's rows with the pooled band, its verdict, and position and velocity
-    reported apart."""
-    rows = summarize(results, scenario)
-    for row in rows:
-        if "error" in row:
-            continue
-        name = row["method"]
-        row["step_lower"], row["step_upper"] = row.pop("lower"), row.pop("upper")
-        pooled, lower, upper = pooled_anees_band(results[f"{name}/nees"], scenario.dim)
-        row["lower"], row["upper"] = lower, upper
-        row["verdict"] = ("conservative" if pooled < lower else
-                          "overconfident" if pooled > upper else "consistent")
-        row["rmse_velocity"] = float(np.sqrt(np.mean(results[f"{name}/velocity_squared_error"])))
-        row["trace_position"] = float(np.mean(results[f"{name}/trace_position"]))
-        row["trace_velocity"] = float(np.mean(results[f"{name}/trace_velocity"]))
-    return rows
-
-
-def format_network_table(rows: Sequence[Mapping[str, Any]]) -> str:
-    """The network demo's table as text (one row per estimator, with column headers).
-
-    Parameters
-    ----------
-    rows : list of dict
-        As returned by :func:`run_network_demo` (rows of
-        :func:`cifilter.network.summarize`, without the velocity RMSE and the position and
-        velocity traces, are shown with "-" in those columns).
-
-    Returns
-    -------
-    str
-        The table; a rule that could not run is listed with the reason.
-
-    Examples
-    --------
-    >>> from cifilter.cli.demo import format_network_table
-    >>> table = format_network_table([{"method": "ci", "guarantee": "bound", "rmse": 3.8,
-    ...     "rmse_velocity": 1.2, "anees": 3.0, "lower": 3.8, "upper": 4.2, "inside": 0.75,
-    ...     "trace_position": 20.5, "trace_velocity": 5.1, "verdict": "conservative",
-    ...     "us_per_fusion": 120.0}])
-    >>> table.splitlines()[1].split()[:2]   # under a line of column titles
-    ['method', 'guarantee']
-    >>> table.splitlines()[3].split()  # doctest: +NORMALIZE_WHITESPACE
-    ['ci', 'bound', '3.800', '1.200', '3.00', '[3.80,', '4.20]', 'conservative', '75.0%',
-     '20.50', '5.10', '120']
-    """
-    top = (f"{'':<12} {'':<9} {'RMSE':>8} {'RMSE':>8} {'pooled':>8}  "
-           f"{'95% band of':<15} {'':<13} {'steps in':>9} {'mean tr P':>9} "
-           f"{'mean tr P':>10} {'batched':>8}")
-    header = (f"{'method':<12} {'guarantee':<9} {'pos [m]':>8} {'vel[m/s]':>8} {'ANEES':>8}  "
-              f"{'pooled ANEES':<15} {'verdict':<13} {'bounds':>9} {'pos [m2]':>9} "
-              f"{'vel[m2/s2]':>10} {'us/fusion':>8}")
-    lines = [top, header, "-" * len(header)]
-    for row in rows:
-        if "error" in row:
-            lines.append(f"{row['method']:<12} {row['guarantee']:<9} cannot run: "
-                         f"{row['error']}")
-            continue
-        band = f"[{row['lower']:.2f}, {row['upper']:.2f}]"
-        timing = f"{row['us_per_fusion']:.0f}" if row["us_per_fusion"] else "-"
-        # rows of cifilter.network.summarize lack the columns the demo adds: shown as "-"
-        velocity, position_trace, velocity_trace = (
-            f"{row[key]:{spec}}" if key in row else "-"
-            for key, spec in (("rmse_velocity", ".3f"), ("trace_position", ".2f"),
-                              ("trace_velocity", ".2f")))
-        lines.append(
-            f"{row['method']:<12} {row['guarantee']:<9} {row['rmse']:>8.3f} "
-            f"{velocity:>8} {row['anees']:>8.2f}  {band:<15} "
-            f"{row['verdict']:<13} {100 * row['inside']:>8.1f}% "
-            f"{position_trace:>9} {velocity_trace:>10} {timing:>8}"
-        )
-    return "\n".join(lines)
-
-
 def _plain_log_ticks(ax):
     """Tick labels 2, 5, 10 rather than 2x10^0 on a logarithmic axis."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
@@ -605,8 +491,12 @@ def _plain_log_ticks(ax):
     plain = FuncFormatter(lambda value, _: f"{value:g}")
     ax.yaxis.set_major_formatter(plain)
     low, high = ax.get_ylim()
-    # label the minor ticks (2, 3, 5, ...) only when the axis spans little more than a decade
-    ax.yaxis.set_minor_formatter(plain if high < 30 * low else NullFormatter())
+    # label the minor ticks 2, 3 and 5 (not 4, 6, 7, 8, 9: they crowd) when the axis spans
+    # little more than a decade
+    mantissa = FuncFormatter(
+        lambda value, _: f"{value:g}" if round(value / 10 ** np.floor(np.log10(value)))
+        in (2, 3, 5) else "")
+    ax.yaxis.set_minor_formatter(mantissa if high < 30 * low else NullFormatter())
 
 
 def _scale_bar(ax, scale):
@@ -631,50 +521,73 @@ def _plot_network(results, rows, scenario, directory):
     runs = next(iter(results.values())).shape[0]
     paths = []
 
-    plt, fig, axes = _grid(len(names))
+    by_name = {row["method"]: row for row in rows if "error" not in row}
+    plt, fig, axes = _grid(len(names), top=1.1, bottom=1.25)
     for ax, name in zip(axes, names):
         result = metrics.anees(results[f"{name}/nees"], scenario.dim)  # (steps, nodes)
         steps = np.arange(1, result.value.shape[0] + 1)
-        ax.fill_between(steps, result.lower, result.upper, color="0.85",
-                        label=f"95% bounds ({runs} runs)")
-        ax.axhline(scenario.dim, color="0.5", lw=0.8, ls="--", label=f"n = {scenario.dim}")
+        ax.fill_between(steps, result.lower, result.upper, color="0.88",
+                        label=f"one step's 95% bounds ({runs} runs)")
+        row = by_name[name]
+        if np.isfinite(row["lower"]):
+            ax.axhspan(row["lower"], row["upper"], color="0.6", alpha=0.5, lw=0,
+                       label="95% band of the pooled ANEES (the verdict)")
+        ax.axhline(scenario.dim, color="0.3", lw=0.8, ls="--", label=f"n = {scenario.dim}")
         ax.plot(steps, result.value, lw=0.6, alpha=0.5, color="C0")
         ax.plot(steps, result.value.mean(axis=1), lw=1.8, color="C3",
                 label="ANEES, mean over nodes")
         ax.plot([], [], lw=0.6, color="C0", label="ANEES of each node")
-        ax.set(title=name, xlabel="step", ylabel="ANEES", yscale="log")
+        ax.axhline(row["anees"], color="C3", lw=1.2, ls=":", label="pooled ANEES")
+        ax.set(title=f"{name}: {row['verdict']}", xlabel="step", ylabel="ANEES",
+               yscale="log")
         _plain_log_ticks(ax)
     # one legend for all panels, below them (it covered the curves in every panel)
-    fig.legend(*axes[0].get_legend_handles_labels(), loc="lower center", ncol=4,
-               fontsize="small", frameon=False)
-    fig.subplots_adjust(bottom=fig.subplotpars.bottom + 0.03)
-    fig.suptitle(f"{scenario.name}: ANEES over {runs} runs against time; inside the band "
-                 "is consistent, below conservative, above overconfident")
+    _title_and_legend(
+        fig, f"{scenario.name}: ANEES over {runs} runs against time. The table's verdict "
+        "compares the pooled ANEES (dotted)\nwith its band (dark grey): inside consistent, "
+        "below conservative, above overconfident",
+        *axes[0].get_legend_handles_labels(), columns=3)
     paths.append(directory / "nees.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
 
-    fig, ax = plt.subplots(figsize=(10, 5))
-    fig.subplots_adjust(left=0.08, right=0.78, bottom=0.11, top=0.92)
-    # every line its own colour, dash pattern and marker (15 lines, a 10-colour cycle drew
-    # naive and le both red); the references in black
-    dashes, markers = ["-", "--", "-.", ":"], "osD^vP*Xh<>p"
-    rules = [name for name in names if name not in ("local", "centralised")]
+    # rmse.png: one panel per guarantee (at most 7 rules each, every one its own colour),
+    # the references in black in each, one scale
+    groups = {}
     for name in names:
-        rmse = np.sqrt(np.mean(results[f"{name}/squared_error"], axis=(0, 2)))
-        steps = np.arange(1, rmse.size + 1)
-        if name in ("local", "centralised"):
-            ax.plot(steps, rmse, "--" if name == "local" else ":", color="k", lw=2,
-                    label=f"{name} (reference)")
-            continue
-        index = rules.index(name)
-        ax.plot(steps, rmse, dashes[index % 4], color=f"C{index % 10}",
-                marker=markers[index % len(markers)], markevery=(index % 5, 5), ms=4,
-                lw=1.3, label=name)
-    ax.set(title=f"{scenario.name}: position RMSE over runs and nodes", xlabel="step",
-           ylabel="RMSE [m]", yscale="log")
-    _plain_log_ticks(ax)
-    ax.legend(fontsize="small", loc="center left", bbox_to_anchor=(1.01, 0.5))
+        if name not in REFERENCES:
+            groups.setdefault(by_name[name]["guarantee"], []).append(name)
+    meaning = {"exact": "P is the error's covariance", "bound": "P bounds the error",
+               "none": "heuristics"}
+    groups = dict(sorted(groups.items(), key=lambda item: (
+        list(meaning).index(item[0]) if item[0] in meaning else len(meaning))))
+    fig, axes = plt.subplots(1, len(groups), figsize=(5 * len(groups), 5.6), sharey=True,
+                             squeeze=False)
+    axes = axes[0]
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.33, top=0.86, wspace=0.08)
+    markers = "osD^vP*X"
+    for ax, (guarantee, group) in zip(axes, groups.items()):
+        for index, name in enumerate([*REFERENCES, *group]):
+            if name not in by_name:
+                continue
+            rmse = np.sqrt(np.mean(results[f"{name}/squared_error"], axis=(0, 2)))
+            steps = np.arange(1, rmse.size + 1)
+            if name in REFERENCES:
+                ax.plot(steps, rmse, "--" if name == "local" else ":", color="k", lw=2,
+                        label=f"{name} (reference)")
+                continue
+            rank = index - len(REFERENCES)
+            ax.plot(steps, rmse, color=f"C{rank % 10}", marker=markers[rank % len(markers)],
+                    markevery=(rank % 5, 5), ms=4, lw=1.3, label=name)
+        ax.set(title=f"guarantee '{guarantee}'"
+               + (f": {meaning[guarantee]}" if guarantee in meaning else ""),
+               xlabel="step", yscale="log")
+        ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2,
+                  frameon=False)
+    axes[0].set_ylabel("RMSE [m]")
+    _plain_log_ticks(axes[0])
+    fig.suptitle(f"{scenario.name}: position RMSE over runs and nodes against time, the "
+                 "rules grouped by their guarantee")
     paths.append(directory / "rmse.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
@@ -694,6 +607,7 @@ def _plot_network(results, rows, scenario, directory):
              for name in ("local", "centralised") if name in ellipses for M in ellipses[name]]
     scale = 0.35 / (2.45 * max(sizes or [1.0]))
     xy = scenario.positions
+    centre = xy.mean(axis=0)
     for ax, name in zip(axes, names):
         for i, j in scenario.edges:
             ax.plot(xy[[i, j], 0], xy[[i, j], 1], color="0.7", lw=1, zorder=0)
@@ -708,15 +622,19 @@ def _plot_network(results, rows, scenario, directory):
                     continue
                 ax.plot(curve[0], curve[1], lw=1.2, label=label if node == 0 else None,
                         **style)
-            ax.annotate(str(node), xy[node], fontsize=9, fontweight="bold", ha="center",
-                        va="center", color="0.15",
-                        bbox=dict(boxstyle="circle,pad=0.15", fc="white", ec="0.6", lw=0.6))
-        ax.set(title=name, aspect="equal", xticks=[], yticks=[])
-        ax.margins(0.12)
+            # the label beside the node, away from the centre: it hid small ellipses
+            away = xy[node] - centre
+            away = away / max(np.linalg.norm(away), 1e-12)
+            ax.annotate(str(node), xy[node] + 0.33 * away, fontsize=9, fontweight="bold",
+                        ha="center", va="center", color="0.15")
+            ax.plot(*xy[node], "o", ms=2.5, color="0.3", zorder=3)
+        ax.set(title=name, xticks=[], yticks=[])
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.margins(0.15)
         _scale_bar(ax, scale)
-    fig.legend(*axes[0].get_legend_handles_labels(), loc="lower center", ncol=2)
-    fig.suptitle(f"{scenario.name}: position ellipses at the last step at every node "
-                 f"(1 layout unit = {1 / scale:.0f} m)")
+    _title_and_legend(fig, f"{scenario.name}: position ellipses at every node at the last "
+                      "step (the same scale in every panel: see the bar)",
+                      *axes[0].get_legend_handles_labels(), columns=2)
     paths.append(directory / "network.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
@@ -767,13 +685,26 @@ def network_memory_estimate(nodes: int, dim: int, steps: int, chunk: int, *,
     return int(250e6 + joint + tracks)
 
 
-def _network_legend(runs, dim, *, nodes=True):
-    """The lines under the demo's title that say what the columns mean (``nodes=False``:
-    the two tracks, whose values are per run and step only)."""
+def _network_legend(runs, dim, values, *, nodes=True):
+    """The lines under the demo's title that say what the columns mean (``values``: NEES
+    values per run; ``nodes=False``: the two tracks, whose values are per run and step)."""
     lower, upper = metrics.chi2_bounds(dim, runs)
     where = "runs, steps and nodes" if nodes else "runs and steps"
-    inside = "a run's steps and nodes are" if nodes else "a run's steps are"
-    share = "steps and nodes" if nodes else "steps"
+    inside = "steps and nodes" if nodes else "steps"
+    band = (
+        f"Its 95% band is where the pooled ANEES of a consistent filter lies: {dim} -+ t * "
+        f"sqrt(2 * {dim} * d / ({values} * {runs})), {values} values per run, t the 97.5% "
+        f"Student t quantile ({runs - 1} degrees of freedom), d the design effect: how much "
+        f"the correlation of a run's {inside} widens the spread of its mean, estimated from "
+        "the rule's own values, independent of their scale (docs/cli.rst derives it). Below "
+        "the band is 'conservative', above 'overconfident'." if runs > 1 else
+        "With a single run there is no band (the spread between runs is what it is made "
+        "of): the verdict is 'inconclusive'.")
+    band = textwrap.fill(
+        f"pooled ANEES: the NEES ({dim} when consistent) averaged over {where}. {band} "
+        f"'steps in bounds': the share of {inside} whose ANEES over the {runs} "
+        f"run{'s' if runs > 1 else ''} lies in one step's 95% chi-square bounds "
+        f"[{lower:.2f}, {upper:.2f}].", width=117)
     references = ("'local' never exchanges;\n'centralised' is one filter with every "
                   "measurement (the best possible)." if nodes else
                   "'local A', 'local B': each\ntracker alone.")
@@ -781,12 +712,7 @@ def _network_legend(runs, dim, *, nodes=True):
         "guarantee: what the rule's P is: 'exact' the covariance of the error, 'bound' an "
         "upper bound on it for any\ncorrelation, 'none' neither (a heuristic). RMSE of "
         f"position [m] and of velocity [m/s] over {where}.\n"
-        f"pooled ANEES: the NEES ({dim} when consistent) averaged over {where}. Its 95% "
-        f"band treats the runs as\nthe independent units ({inside} correlated): "
-        f"{dim} -+ t * s / sqrt(runs), s the spread of the run\nmeans (docs/cli.rst "
-        "derives it); below the band is 'conservative', above 'overconfident'. 'steps in "
-        f"bounds': the share\nof {share} whose ANEES over the {runs} runs lies in one "
-        f"step's 95% chi-square bounds [{lower:.2f}, {upper:.2f}].\n"
+        f"{band}\n"
         "mean tr P: the trace of P's position block [m^2] and of its velocity block "
         "[(m/s)^2]. 'batched us/fusion': the time\nof a step's fusions of all runs "
         f"at once divided by their number (it falls with more runs). {references}"
@@ -833,10 +759,8 @@ def run_network_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[
     Returns
     -------
     list of dict
-        The rows of :func:`cifilter.network.summarize`, with ``lower``, ``upper`` and
-        ``verdict`` those of the pooled ANEES (:func:`pooled_anees_band`; the single
-        step's bounds move to ``step_lower``, ``step_upper``), and ``rmse_velocity``,
-        ``trace_position``, ``trace_velocity``.
+        The rows of :func:`cifilter.network.summarize` (printed by
+        :func:`cifilter.network.format_summary`).
 
     Examples
     --------
@@ -854,7 +778,7 @@ def run_network_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[
     steps = NETWORK_DEFAULTS["steps"] if steps is None else check_int(steps, "steps", low=1)
     if not isinstance(scenario, Scenario):
         scenario = get_scenario(scenario, **({} if nodes is None else {"nodes": nodes}))
-    study = _DemoStudy(scenario, None if methods is None else tuple(methods), steps,
+    study = NetworkStudy(scenario, None if methods is None else tuple(methods), steps,
                          feedback=feedback, period=period, sequential=sequential,
                          delay=delay, loss=loss)
     directory = None if plot is None else _directory(plot)
@@ -862,21 +786,22 @@ def run_network_demo(seed: int = 0, runs: Optional[int] = None, steps: Optional[
     results = montecarlo.run(study, runs, chunk_size=DEMO_CHUNK_SIZE, client=client,
                              seed=seed, progress=progress)
     elapsed = time.perf_counter() - start
-    rows = _network_rows(results, scenario)
+    rows = summarize(results, scenario)
     exchange = ("one at a time" if sequential else "all at once")
     print(
         f"cifilter demo: {scenario.description}.\n"
-        f"{scenario.nodes} nodes, {len(scenario.edges)} links; 2-D constant-velocity "
+        f"{scenario.nodes} nodes, {len(scenario.edges)} link"
+        f"{'s' if len(scenario.edges) != 1 else ''}; 2-D constant-velocity "
         f"target; {runs} runs x {steps} steps, seed {seed}.\n"
         f"Every {'' if period == 1 else f'{period}th '}step each node predicts, updates "
         f"with its own measurement and fuses its neighbours' estimates ({exchange}"
         f"{', one step late' if delay else ''}"
         f"{f', {100 * loss:g}% of messages lost' if loss else ''}), "
         f"{'feeding the result back into its filter' if feedback else 'without feedback'}.\n"
-        f"{_network_legend(runs, scenario.dim)}\n",
+        f"{_network_legend(runs, scenario.dim, steps * scenario.nodes)}\n",
         file=out,
     )
-    print(format_network_table(rows), file=out)
+    print(format_summary(rows), file=out)
     print(f"\n{elapsed:.1f} s ({sum(1 for r in rows if 'error' not in r) - 2} rules)",
           file=out)
     if directory is not None:

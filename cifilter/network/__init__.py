@@ -12,7 +12,10 @@ estimates, feeding the result back into their filters.
   reference;
 * :mod:`cifilter.network.study`: :func:`compare` (every registered rule on the same data)
   and :class:`NetworkStudy`, the same as a study for :func:`cifilter.montecarlo.run`,
-  scored with :mod:`cifilter.metrics` by :func:`summarize`.
+  scored with :mod:`cifilter.metrics` by :func:`summarize` (the columns of ``python -m
+  cifilter demo``: position and velocity RMSE, the pooled ANEES and its band, the traces
+  of ``P``'s position and velocity blocks) and printed by :func:`format_summary`;
+  :func:`score_track` gives the same columns for estimates from elsewhere.
 """
 
 from .graph import (
@@ -30,7 +33,7 @@ from .graph import (
     two_tracks,
 )
 from .simulate import NetworkData, NetworkTrack, centralised, run_network, simulate_data
-from .study import REFERENCES, NetworkStudy, compare, summarize
+from .study import REFERENCES, NetworkStudy, compare, format_summary, score_track, summarize
 
 __all__ = [
     "NAVEEN_TAYLOR_EDGES",
@@ -45,12 +48,14 @@ __all__ = [
     "common_information",
     "compare",
     "constant_velocity_model",
+    "format_summary",
     "fully_connected",
     "get_scenario",
     "naveen_taylor",
     "ring",
     "run_network",
     "scenario_names",
+    "score_track",
     "simulate_data",
     "summarize",
     "two_tracks",

@@ -4,30 +4,41 @@
 with a random generator and a number of runs, it simulates the scenario once
 (:func:`~cifilter.network.simulate_data`), runs the local filters, the centralised filter
 and the network under every rule on those data, and returns per-run arrays (NEES, squared
-position errors, traces, the last step's covariances and errors, fusion times). Chunks of
-runs concatenate along the first axis; :func:`summarize` scores the concatenated arrays
-with :mod:`cifilter.metrics`. :func:`compare` does both in this process.
+position and velocity errors, traces, the last step's covariances and errors, fusion
+times). Chunks of runs concatenate along the first axis; :func:`summarize` scores the
+concatenated arrays with :mod:`cifilter.metrics` (the columns of ``python -m cifilter
+demo``) and :func:`format_summary` prints them under the demo's column titles.
+:func:`compare` simulates and scores in this process; :func:`score_track` gives the same
+columns for estimates from elsewhere.
 
 Rules registered later appear without editing this module: the rules are looked up in
 the registry, and a rule that cannot run in the scenario (it fuses two estimates only, its
 truth hook fails, ...) is reported with the reason instead of stopping the study.
 """
 
+import numbers
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Optional, Union
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .. import metrics
-from .._numerics.validation import as_rng, check_int, check_scalar
+from .._numerics.validation import (
+    as_float_array,
+    as_rng,
+    check_finite,
+    check_int,
+    check_scalar,
+)
 from ..registry import available_methods, get_method
-from .graph import Scenario
+from .graph import POSITION, Scenario
 from .simulate import centralised, run_network, simulate_data
 
-__all__ = ["REFERENCES", "NetworkStudy", "compare", "summarize"]
+__all__ = ["REFERENCES", "NetworkStudy", "compare", "format_summary",
+           "score_track", "summarize"]
 
 REFERENCES = ("local", "centralised")
 """The reference estimators of every study: each node's own filter without exchange, and
@@ -106,11 +117,13 @@ class NetworkStudy:
         -------
         dict of ndarray
             For every estimator ``e`` (``"local"``, ``"centralised"``, then the rules):
-            ``e/nees``, ``e/squared_error`` (position) and ``e/trace`` of shape
-            (runs, steps, nodes); ``e/P_last`` (runs, nodes, n, n) and ``e/error_last``
-            (runs, nodes, n) of the last step; ``e/seconds`` and ``e/fusions`` (runs,),
-            each run's share of the fusion time and count. A rule that failed has only
-            ``e/failed`` (runs,), the reason.
+            ``e/nees``, ``e/squared_error`` (position), ``e/velocity_squared_error`` (the
+            other components), ``e/trace``, ``e/trace_position`` and
+            ``e/trace_velocity`` (of ``P`` and of its position and velocity blocks) of
+            shape (runs, steps, nodes); ``e/P_last`` (runs, nodes, n, n) and
+            ``e/error_last`` (runs, nodes, n) of the last step; ``e/seconds`` and
+            ``e/fusions`` (runs,), each run's share of the fusion time and count. A rule
+            that failed has only ``e/failed`` (runs,), the reason.
 
         Examples
         --------
@@ -139,17 +152,146 @@ class NetworkStudy:
         return out
 
     def _score(self, out, track, data, runs):
-        truth = data.truth[:, :, None]
-        error = track.x - truth
-        position = list(self.scenario.position_indices)
         name = track.method
-        out[f"{name}/nees"] = metrics.nees(truth, track.x, track.P)
-        out[f"{name}/squared_error"] = np.sum(error[..., position] ** 2, axis=-1)
-        out[f"{name}/trace"] = np.trace(track.P, axis1=-2, axis2=-1)
+        values = _values(data.truth[:, :, None], track.x, track.P,
+                         self.scenario.position_indices)
+        for key, value in values.items():
+            out[f"{name}/{key}"] = value
         out[f"{name}/P_last"] = np.array(track.P[:, -1])
-        out[f"{name}/error_last"] = np.array(error[:, -1])
+        out[f"{name}/error_last"] = np.array(track.x[:, -1] - data.truth[:, -1, None])
         out[f"{name}/seconds"] = np.full(runs, track.fuse_seconds / runs)
         out[f"{name}/fusions"] = np.full(runs, track.fusions / runs)
+
+
+# the arrays a study keeps of every estimator, per run, step and node
+_VALUES = ("nees", "squared_error", "velocity_squared_error", "trace", "trace_position",
+           "trace_velocity")
+
+
+def _values(truth, x, P, position):
+    """Per run, step (and node): the NEES, the squared position and velocity errors, and
+    the traces of P, of its position block and of the rest ("velocity")."""
+    x = np.asarray(x, dtype=float)
+    P = np.broadcast_to(np.asarray(P, dtype=float), x.shape + x.shape[-1:])
+    error = x - np.asarray(truth, dtype=float)
+    position = list(position)
+    velocity = [i for i in range(x.shape[-1]) if i not in position]
+    diagonal = np.diagonal(P, axis1=-2, axis2=-1)
+    return {
+        "nees": metrics.nees(truth, x, P),
+        "squared_error": np.sum(error[..., position] ** 2, axis=-1),
+        "velocity_squared_error": np.sum(error[..., velocity] ** 2, axis=-1),
+        "trace": np.trace(P, axis1=-2, axis2=-1),
+        "trace_position": np.sum(diagonal[..., position], axis=-1),
+        "trace_velocity": np.sum(diagonal[..., velocity], axis=-1),
+    }
+
+
+def _verdict(value, lower, upper):
+    if not (np.isfinite(lower) and np.isfinite(upper)):
+        return "inconclusive"
+    return "conservative" if value < lower else "overconfident" if value > upper \
+        else "consistent"
+
+
+def _columns(values, dim, confidence):
+    """One estimator's columns from its per-estimate arrays (runs first)."""
+    pooled, lower, upper = metrics.pooled_anees_band(values["nees"], dim, confidence)
+    steps = metrics.anees(values["nees"], dim, confidence=confidence)
+    return {
+        "rmse": float(np.sqrt(np.mean(values["squared_error"]))),
+        "rmse_velocity": float(np.sqrt(np.mean(values["velocity_squared_error"]))),
+        "anees": pooled,
+        "lower": lower,
+        "upper": upper,
+        "verdict": _verdict(pooled, lower, upper),
+        "inside": steps.share_inside,
+        "step_lower": steps.lower,
+        "step_upper": steps.upper,
+        "mean_trace": float(np.mean(values["trace"])),
+        "trace_position": float(np.mean(values["trace_position"])),
+        "trace_velocity": float(np.mean(values["trace_velocity"])),
+    }
+
+
+def score_track(truth: ArrayLike, x: ArrayLike, P: ArrayLike, *,
+                position_indices: Sequence[int] = POSITION,
+                confidence: float = 0.95) -> dict[str, Any]:
+    """The columns of :func:`summarize` for one estimator's estimates.
+
+    For estimates that did not come from a :class:`NetworkStudy` (for instance the two
+    tracks of ``python -m cifilter demo --scenario two-tracks``, fused once per run and
+    step): the same numbers, computed the same way.
+
+    Parameters
+    ----------
+    truth : array_like, shape (runs, ..., n)
+        True states; broadcast against ``x`` (for a network, ``truth[:, :, None]`` against
+        estimates of shape (runs, steps, nodes, n)).
+    x : array_like, shape (runs, ..., n)
+        Estimates, the independent Monte Carlo runs along the first axis.
+    P : array_like, shape (..., n, n)
+        Their covariances, broadcast against ``x``.
+    position_indices : sequence of int, optional
+        The state's position components (default ``(0, 2)``, the x and y of the state
+        ``[x, vx, y, vy]``); the others are reported as the velocity.
+    confidence : float, optional
+        Probability of the bands (default 0.95).
+
+    Returns
+    -------
+    dict
+        ``rmse``, ``rmse_velocity``, ``anees``, ``lower``, ``upper``, ``verdict``,
+        ``inside``, ``step_lower``, ``step_upper``, ``mean_trace``, ``trace_position``
+        and ``trace_velocity``, as in :func:`summarize`.
+
+    Raises
+    ------
+    ValueError
+        If the shapes do not broadcast, a value is not finite, a covariance is not
+        positive definite, a position index is outside the state or repeated, or
+        ``confidence`` is outside (0, 1).
+    TypeError
+        If an array is not numeric.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cifilter.network import score_track
+    >>> rng = np.random.default_rng(0)
+    >>> truth = np.zeros((50, 20, 4))
+    >>> x = rng.standard_normal((50, 20, 4))        # errors of covariance I
+    >>> row = score_track(truth, x, np.eye(4))
+    >>> row["verdict"], round(row["trace_position"], 1), round(row["trace_velocity"], 1)
+    ('consistent', 2.0, 2.0)
+    """
+    x = as_float_array(x, "x")
+    if x.ndim < 2:
+        raise ValueError(f"x must have a runs axis and a state axis, got shape {x.shape}")
+    n = x.shape[-1]
+    truth, P = as_float_array(truth, "truth"), as_float_array(P, "P")
+    for name, array in (("truth", truth), ("x", x), ("P", P)):
+        check_finite(array, name)
+    try:
+        np.broadcast_shapes(truth.shape, x.shape)
+    except ValueError:
+        raise ValueError(f"truth of shape {truth.shape} does not broadcast against x of "
+                         f"shape {x.shape}") from None
+    if P.ndim < 2 or P.shape[-2:] != (n, n):
+        raise ValueError(f"P must have shape (..., {n}, {n}) to match x, got {P.shape}")
+    try:
+        np.broadcast_shapes(P.shape[:-2], x.shape[:-1])
+    except ValueError:
+        raise ValueError(f"the batch axes of P {P.shape[:-2]} do not broadcast against "
+                         f"those of x {x.shape[:-1]}") from None
+    position: list[int] = []
+    for index in position_indices:
+        if isinstance(index, (bool, np.bool_)) or not isinstance(index, numbers.Integral) \
+                or not 0 <= index < n or index in position:
+            raise ValueError(f"position_indices must be distinct state indices in "
+                             f"[0, {n}), got {tuple(position_indices)!r}")
+        position.append(int(index))
+    return _columns(_values(truth, x, P, position), n, confidence)
 
 
 def _estimators(results):
@@ -163,7 +305,7 @@ def _estimators(results):
 
 def summarize(results: Mapping[str, NDArray[Any]], scenario: Scenario, *,
               confidence: float = 0.95) -> list[dict[str, Any]]:
-    """Score a study's results: one row per estimator.
+    """Score a study's results: one row per estimator, the columns of the demo's table.
 
     Parameters
     ----------
@@ -171,30 +313,39 @@ def summarize(results: Mapping[str, NDArray[Any]], scenario: Scenario, *,
         What :class:`NetworkStudy` returns, possibly concatenated over chunks by
         :func:`cifilter.montecarlo.run`.
     scenario : Scenario
-        The scenario of the study (its state dimension).
+        The scenario of the study (its state dimension and position components).
     confidence : float, optional
-        Probability of the chi-square bounds (default 0.95).
+        Probability of the bands (default 0.95).
 
     Returns
     -------
     list of dict
-        Per estimator: ``method``, ``guarantee`` (``"exact"`` for the references, else
-        the registry's), ``rmse`` (position, over runs, steps and nodes), ``anees`` (the
-        ANEES over runs per step and node, averaged), ``lower`` and ``upper`` (its
-        two-sided bounds, :func:`cifilter.metrics.chi2_bounds`), ``inside`` (share of the
-        steps and nodes whose ANEES lies inside them), ``mean_trace`` (of ``P``),
-        ``verdict`` (``"conservative"``: mean ANEES below the lower bound,
-        ``"overconfident"``: above the upper one, else ``"consistent"``) and
-        ``us_per_fusion`` (fusion time per node fusion, in microseconds); or ``method``,
-        ``guarantee`` and ``error`` for a rule that could not run.
+        Per estimator: ``method``; ``guarantee`` (``"exact"`` for the references, else
+        the registry's); ``rmse`` and ``rmse_velocity`` (position [m] and the other
+        components, "velocity" [m/s], over runs, steps and nodes); ``anees``, the pooled
+        ANEES (the NEES averaged over runs, steps and nodes); ``lower`` and ``upper``, its
+        band (:func:`cifilter.metrics.pooled_anees_band`); ``verdict``
+        (``"conservative"`` below the band, ``"overconfident"`` above it, else
+        ``"consistent"``; ``"inconclusive"`` with a single run); ``inside``, the share of
+        the steps and nodes whose ANEES over the runs lies inside one step's two-sided
+        chi-square bounds ``step_lower``, ``step_upper``
+        (:func:`cifilter.metrics.anees`); ``mean_trace``, ``trace_position`` and
+        ``trace_velocity``, the mean trace of ``P`` and of its position and velocity
+        blocks (m^2 and (m/s)^2 apart); ``us_per_fusion``, the fusion time divided by the
+        number of node fusions, in microseconds (the calls are batched over the runs, so
+        it falls with more runs). A rule that could not run has ``method``,
+        ``guarantee`` and ``error`` only. :func:`format_summary` prints the rows.
 
     Examples
     --------
     >>> from cifilter.network import NetworkStudy, summarize, two_tracks
     >>> scenario = two_tracks()
     >>> rows = summarize(NetworkStudy(scenario, ("ci",), steps=20)(0, 10), scenario)
-    >>> [row["method"] for row in rows], rows[2]["verdict"]
-    (['local', 'centralised', 'ci'], 'consistent')
+    >>> [row["method"] for row in rows]
+    ['local', 'centralised', 'ci']
+    >>> ci = rows[2]    # CI's P bounds the error: its pooled ANEES is below the band
+    >>> round(ci["anees"], 2), round(ci["lower"], 2), ci["verdict"]
+    (2.79, 3.11, 'conservative')
     """
     rows = []
     for name in _estimators(results):
@@ -203,22 +354,78 @@ def summarize(results: Mapping[str, NDArray[Any]], scenario: Scenario, *,
             rows.append({"method": name, "guarantee": guarantee,
                          "error": str(results[f"{name}/failed"][0])})
             continue
-        result = metrics.anees(results[f"{name}/nees"], scenario.dim, confidence=confidence)
         fusions = float(np.sum(results[f"{name}/fusions"]))
         rows.append({
             "method": name,
             "guarantee": guarantee,
-            "rmse": float(np.sqrt(np.mean(results[f"{name}/squared_error"]))),
-            "anees": result.mean,
-            "lower": result.lower,
-            "upper": result.upper,
-            "inside": result.share_inside,
-            "mean_trace": float(np.mean(results[f"{name}/trace"])),
-            "verdict": result.verdict,
+            **_columns({key: results[f"{name}/{key}"] for key in _VALUES}, scenario.dim,
+                       confidence),
             "us_per_fusion": (1e6 * float(np.sum(results[f"{name}/seconds"])) / fusions
                               if fusions else 0.0),
         })
     return rows
+
+
+def format_summary(rows: Sequence[Mapping[str, Any]]) -> str:
+    """The rows of :func:`summarize` as a table under two lines of column titles.
+
+    It is the table ``python -m cifilter demo`` prints (whose header says what the
+    columns mean; :doc:`/cli` has the details).
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        Rows of :func:`summarize` or :func:`compare`. Of rows from elsewhere, only
+        ``method``, ``guarantee``, ``rmse``, ``anees``, ``lower``, ``upper``, ``verdict``
+        and ``inside`` are needed: a missing velocity RMSE or trace and a zero or
+        missing ``us_per_fusion`` are shown as ``-``.
+
+    Returns
+    -------
+    str
+        The table; a rule that could not run is listed with the reason.
+
+    Examples
+    --------
+    >>> from cifilter.network import format_summary
+    >>> table = format_summary([{"method": "ci", "guarantee": "bound", "rmse": 3.8,
+    ...     "rmse_velocity": 1.2, "anees": 3.0, "lower": 3.8, "upper": 4.2, "inside": 0.75,
+    ...     "trace_position": 20.5, "trace_velocity": 5.1, "verdict": "conservative",
+    ...     "us_per_fusion": 120.0}])
+    >>> table.splitlines()[1].split()[:2]   # under a line of column titles
+    ['method', 'guarantee']
+    >>> table.splitlines()[3].split()  # doctest: +NORMALIZE_WHITESPACE
+    ['ci', 'bound', '3.800', '1.200', '3.00', '[3.80,', '4.20]', 'conservative', '75.0%',
+     '20.50', '5.10', '120']
+    """
+    top = (f"{'':<12} {'':<9} {'RMSE':>8} {'RMSE':>8} {'pooled':>8}  "
+           f"{'95% band of':<15} {'':<13} {'steps in':>9} {'mean tr P':>9} "
+           f"{'mean tr P':>10} {'batched':>8}")
+    header = (f"{'method':<12} {'guarantee':<9} {'pos [m]':>8} {'vel[m/s]':>8} {'ANEES':>8}  "
+              f"{'pooled ANEES':<15} {'verdict':<13} {'bounds':>9} {'pos [m2]':>9} "
+              f"{'vel[m2/s2]':>10} {'us/fusion':>8}")
+    lines = [top, header, "-" * len(header)]
+    for row in rows:
+        if "error" in row:
+            lines.append(f"{row['method']:<12} {row['guarantee']:<9} cannot run: "
+                         f"{row['error']}")
+            continue
+        band = (f"[{row['lower']:.2f}, {row['upper']:.2f}]"
+                if np.isfinite(row["lower"]) and np.isfinite(row["upper"]) else "-")
+        timing = f"{row['us_per_fusion']:.0f}" if row.get("us_per_fusion") else "-"
+        # 8 characters also for the huge ANEES of data incest (5.41e+10)
+        anees = f"{row['anees']:.2f}" if row["anees"] < 1e5 else f"{row['anees']:.2e}"
+        velocity, position_trace, velocity_trace = (
+            f"{row[key]:{spec}}" if key in row else "-"
+            for key, spec in (("rmse_velocity", ".3f"), ("trace_position", ".2f"),
+                              ("trace_velocity", ".2f")))
+        lines.append(
+            f"{row['method']:<12} {row['guarantee']:<9} {row['rmse']:>8.3f} "
+            f"{velocity:>8} {anees:>8}  {band:<15} "
+            f"{row['verdict']:<13} {100 * row['inside']:>8.1f}% "
+            f"{position_trace:>9} {velocity_trace:>10} {timing:>8}"
+        )
+    return "\n".join(lines)
 
 
 def compare(scenario: Scenario, methods: Optional[Sequence[str]] = None, *, runs: int = 20,
@@ -237,7 +444,7 @@ def compare(scenario: Scenario, methods: Optional[Sequence[str]] = None, *, runs
     rng : numpy.random.Generator, int or None, optional
         Randomness.
     confidence : float, optional
-        Probability of the chi-square bounds.
+        Probability of the bands (default 0.95).
     **config
         ``feedback``, ``period``, ``sequential``, ``delay``, ``loss``, ``options`` (see
         :class:`NetworkStudy`).
