@@ -4,7 +4,6 @@ import io
 import subprocess
 import sys
 
-import numpy as np
 import pytest
 
 from cifilter import available_methods
