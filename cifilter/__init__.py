@@ -23,7 +23,10 @@ Drop-in filterpy filters with a ``fuse`` step, and the fusion rules behind it:
   2003), safe fusion (Benaskeur 2002; Nygårds et al. 2016) and sampling CI (Tian,
   Bar-Shalom & Chen 2010);
 * every rule is reachable through :func:`fuse` and the registry
-  (:func:`register_method`, :func:`available_methods`).
+  (:func:`register_method`, :func:`available_methods`), which also fuses estimates of part
+  of the state (``H=``), of non-Euclidean states (``residual=``, ``add=``) and of other
+  times (``times=``, ``at=``, ``motion=``; ``kf.fuse(..., lag=)``) for the rules that
+  accept them (``docs/methods/partial_state.rst``, ``docs/methods/time.rst``).
 """
 
 # The floors, bottom up: importing the rules registers them (in rules.BUILT_IN's order);

@@ -6,6 +6,13 @@ function that trusts its input; the rule's public function (for instance
 :func:`cifilter.covariance_intersection`) validates and calls the same core. Options such
 as ``horizon=`` are handled here for every rule whose record declares them. The built-in
 rules are registered, in an explicit order, by :mod:`cifilter.rules`.
+
+The front door also brings the estimates to one state space and one time before a rule
+runs, for the rules whose record declares it (``front_door``): ``H=`` (estimates of parts
+``H_i x`` of the state), ``residual=``/``add=`` (non-Euclidean states, fused as residuals
+relative to the first estimate) and ``times=``/``at=``/``motion=`` (estimates of other
+times, predicted or retrodicted to ``at``); see ``docs/methods/partial_state.rst`` and
+``docs/methods/time.rst``.
 """
 
 import dataclasses
@@ -17,6 +24,16 @@ from typing import Any, Callable, Optional
 import numpy as np
 from numpy.typing import ArrayLike
 
+from ._numerics.alignment import (
+    PartialEstimates,
+    added_to_reference,
+    align_in_time,
+    as_partial_estimates,
+    check_observation_matrices,
+    check_times,
+    residuals_to_reference,
+)
+from ._numerics.linalg import cholesky
 from ._numerics.validation import as_estimates, restore_style
 from .result import FusionResult
 
@@ -24,6 +41,14 @@ __all__ = ["FusionMethod", "available_methods", "fuse", "get_method", "register_
 
 # A horizon hook: ``hook(estimates, model, steps, options) -> (core_options, info)``.
 _HorizonHook = Callable[..., tuple[Mapping[str, Any], Mapping[str, Any]]]
+
+# The options the front door handles for the rules whose record lists them in
+# ``front_door``: what each name enables, and what it means (for the messages).
+FRONT_DOOR_OPTIONS = {
+    "H": ("H=", "accept H="),
+    "residual": ("residual= and add=", "accept residual= and add="),
+    "times": ("times=, at= and motion=", "bring estimates of other times to at= (times=)"),
+}
 
 
 def _option_signature(function, skip):
@@ -80,6 +105,15 @@ class FusionMethod:
         weights) and the diagnostics stored as ``info["horizon"]``.
     weights : str
         What ``FusionResult.weights`` holds for this rule (for the documentation).
+    front_door : tuple of str
+        The front-door options the rule supports, among ``"H"`` (its ``core`` also takes
+        :class:`cifilter._numerics.alignment.PartialEstimates`: estimates ``x_i`` of
+        ``H_i x`` with their own dimensions), ``"residual"`` (``residual=``/``add=``: the
+        rule's fused mean is an affine combination ``sum_i K_i x_i`` with
+        ``sum_i K_i = I``, so it may fuse residuals) and ``"times"``
+        (``times=``/``at=``/``motion=``: its guarantee holds for estimates whose covariance
+        bounds their error and whose correlation is unknown, which the time alignment
+        produces). Empty: none of them.
     signature : tuple or None
         The option names the rule accepts, those it requires and whether it takes any
         keyword (computed from ``core`` or ``function`` when None, once; likewise the
@@ -93,6 +127,8 @@ class FusionMethod:
     ('exact', ['joint'])
     >>> get_method("ci").horizon is not None, get_method("ei").horizon is None
     (True, True)
+    >>> get_method("ci").front_door
+    ('H', 'residual', 'times')
     """
 
     name: str
@@ -104,6 +140,7 @@ class FusionMethod:
     core: Optional[Callable[..., FusionResult]] = None
     horizon: Optional[_HorizonHook] = None
     weights: str = ""
+    front_door: tuple[str, ...] = ()
     signature: Optional[tuple[tuple[str, ...], tuple[str, ...], bool]] = field(
         default=None, repr=False, compare=False)
     truth_takes_count: bool = field(default=False, init=False, repr=False, compare=False)
@@ -160,7 +197,7 @@ def register_method(name: str, function: Callable[..., FusionResult], *, summary
                     truth_options: Optional[Callable[..., Mapping[str, Any]]] = None,
                     core: Optional[Callable[..., FusionResult]] = None,
                     horizon: Optional[_HorizonHook] = None, weights: str = "",
-                    replace: bool = False) -> FusionMethod:
+                    front_door: Sequence[str] = (), replace: bool = False) -> FusionMethod:
     """Register a fusion rule so that ``fuse(..., method=name)`` can use it.
 
     Parameters
@@ -186,6 +223,9 @@ def register_method(name: str, function: Callable[..., FusionResult], *, summary
         The rule's support of ``fuse(..., horizon=, model=)`` (see :class:`FusionMethod`).
     weights : str, optional
         What the result's ``weights`` are for this rule (documentation).
+    front_door : sequence of str, optional
+        The front-door options the rule supports (see :class:`FusionMethod`): ``"H"``
+        (needs ``core``), ``"residual"``, ``"times"``. Default: none.
     replace : bool, optional
         Allow replacing an existing registration (default False).
 
@@ -198,10 +238,12 @@ def register_method(name: str, function: Callable[..., FusionResult], *, summary
     ------
     TypeError
         If ``name`` is not a string or ``function``, ``core``, ``horizon`` or
-        ``truth_options`` is not callable, or ``horizon`` is given without ``core``.
+        ``truth_options`` is not callable, or ``horizon`` or ``front_door=("H",)`` is given
+        without ``core``.
     ValueError
-        If ``name`` is empty, already registered and ``replace`` is False, or
-        ``guarantee`` is not one of the three values.
+        If ``name`` is empty, already registered and ``replace`` is False,
+        ``guarantee`` is not one of the three values, or ``front_door`` names an unknown
+        option.
 
     Examples
     --------
@@ -230,10 +272,22 @@ def register_method(name: str, function: Callable[..., FusionResult], *, summary
     if horizon is not None and core is None:
         raise TypeError("horizon= needs core=: the front door fuses with the chosen weights "
                         "through the rule's core")
+    if isinstance(front_door, str):
+        front_door = (front_door,)
+    front_door = tuple(front_door)
+    unknown = [option for option in front_door if option not in FRONT_DOOR_OPTIONS]
+    if unknown:
+        raise ValueError(
+            f"front_door may list {', '.join(map(repr, FRONT_DOOR_OPTIONS))}; got "
+            f"{', '.join(map(repr, unknown))}"
+        )
+    if "H" in front_door and core is None:
+        raise TypeError("front_door=('H',) needs core=: estimates of parts of the state "
+                        "reach the rule's core only")
     if name in _REGISTRY and not replace:
         raise ValueError(f"a fusion method named {name!r} is already registered")
     record = FusionMethod(name, function, summary, reference, guarantee, truth_options,
-                          core, horizon, weights)
+                          core, horizon, weights, front_door)
     _REGISTRY[name] = record
     return record
 
@@ -399,8 +453,11 @@ def split_estimate(item: Any, index: int, labels: Optional[Sequence[str]] = None
     )
 
 
-def fuse(estimates: Sequence[Any], method: str = "ci", *, horizon: Optional[int] = None,
-         model: Any = None, **options: Any) -> FusionResult:
+def fuse(estimates: Sequence[Any], method: str = "ci", *, H: Optional[Sequence[Any]] = None,
+         residual: Optional[Callable[..., Any]] = None,
+         add: Optional[Callable[..., Any]] = None, times: Optional[Sequence[float]] = None,
+         at: Optional[float] = None, motion: Optional[Callable[..., Any]] = None,
+         horizon: Optional[int] = None, model: Any = None, **options: Any) -> FusionResult:
     """Fuse estimates with a registered rule.
 
     Parameters
@@ -411,6 +468,40 @@ def fuse(estimates: Sequence[Any], method: str = "ci", *, horizon: Optional[int]
         batch axes fuse many problems at once and broadcast against each other.
     method : str, optional
         A registered rule (see :func:`available_methods`); default ``"ci"``.
+    H : sequence, optional
+        One entry per estimate: None (the estimate is of the full state) or an (m_i, n)
+        matrix: estimate ``i`` (``x_i`` of dimension m_i) estimates ``H_i x`` of the
+        n-dimensional state. For the rules that accept it (``"ci"``: generalised CI
+        ``P^-1 = sum_i w_i H_i^T P_i^-1 H_i`` with optimal, fast or given weights;
+        ``"naive"``; ``"optimal"`` with the joint of the partial estimates; ``"split-ci"``,
+        a partial second estimate); see ``docs/methods/partial_state.rst``. The gains
+        ``K_i`` (n x m_i) are then ``info["gains"]`` (``gains`` is None unless every
+        ``m_i = n``). If the estimates together do not observe the state (``sum_i H_i^T
+        P_i^-1 H_i`` singular) a ValueError names the unobserved directions.
+    residual : callable, optional
+        ``residual(a, b)``: ``a - b`` in the state space (for instance wrapping an angle),
+        called on 1-D copies of two full-state means. The rule then fuses the residuals
+        ``residual(x_i, x_1)`` relative to the first estimate (which must be of the full
+        state; estimates of ``H_i x`` contribute ``x_i - H_i x_1``) and the result is
+        ``add(x_1, fused residual)``. Default with ``add`` only: plain subtraction.
+    add : callable, optional
+        ``add(x, dx)``: ``x + dx`` in the state space (for instance normalising an angle).
+        Default with ``residual`` only: plain addition.
+    times : sequence of float, optional
+        The time of each estimate. Every estimate is brought to ``at`` before the rule
+        runs: an older one is predicted (``F x``, ``F P F^T + Q``, exact), a newer one
+        retrodicted with the bound ``F^-1 (P / alpha + Q / (1 - alpha)) F^-T`` (the plain
+        ``F^-1 (P + Q) F^-T`` is not a bound: the estimate's error is correlated with the
+        process noise in between); ``(F, Q) = motion(|at - t_i|)``. Proof:
+        ``docs/methods/time.rst``. ``info["at"]`` is the time of the result and
+        ``info["retrodiction_alpha"]`` the alpha per estimate (None unless retrodicted).
+        For the rules whose guarantee survives the shift (``"ci"``).
+    at : float, optional
+        The time to fuse at; default the latest of ``times``.
+    motion : callable, optional
+        ``motion(dt) -> (F, Q)`` for ``dt > 0``: the state transition over ``dt`` and the
+        covariance of the process noise it adds (n x n each, ``Q`` symmetric positive
+        semidefinite). Needed when some ``times[i] != at``.
     horizon : int, optional
         Choose the rule's weights for the bound ``horizon`` predict/update steps of
         ``model`` after the fusion (Ajgl et al. 2014; :mod:`cifilter.horizon`), for rules
@@ -419,7 +510,7 @@ def fuse(estimates: Sequence[Any], method: str = "ci", *, horizon: Optional[int]
         horizon solver's diagnostics (``steps``, ``criterion``, ``value``,
         ``value_recursive``, ``weights_recursive``, ``iterations``, ``converged``, ``gap``,
         ``solver``) and ``info["converged"]``, ``info["iterations"]`` and ``info["gap"]`` are
-        those of that choice. ``horizon=0`` is the rule's own optimum.
+        those of that choice. ``horizon=0`` is the rule's own optimum. Not with ``H``.
     model : mapping or object, optional
         The model of the steps after the fusion, needed with ``horizon``: a mapping or an
         object (such as a ``KalmanFilter``) with ``F`` and ``Q`` and optionally ``H``, ``R``
@@ -440,11 +531,17 @@ def fuse(estimates: Sequence[Any], method: str = "ci", *, horizon: Optional[int]
         Unknown method (the message lists the registered ones), fewer than two estimates,
         bad shapes, non-finite, non-symmetric or non-positive-definite covariances, an
         option out of range, ``horizon`` for a rule that does not support it or without
-        ``model``, ``model`` without ``horizon``.
+        ``model``, ``model`` without ``horizon``; ``H``, ``residual``/``add`` or ``times``
+        for a rule that does not accept them (the message names the rules that do), an
+        ``H`` entry of the wrong shape, estimates that do not observe the state, ``at`` or
+        ``motion`` without ``times``, non-finite times, a ``motion`` whose matrices have
+        the wrong shape or a ``Q`` that is not positive semidefinite, a singular ``F``
+        for a newer estimate (an :class:`~cifilter.IllConditionedError`).
     TypeError
         An estimate of the wrong kind, non-numeric, boolean or complex values, an option
         the rule does not accept or a required option that is missing (for instance
-        ``joint`` of ``"optimal"``).
+        ``joint`` of ``"optimal"``), a ``residual``, ``add`` or ``motion`` that is not
+        callable or returns the wrong kind of value.
 
     See Also
     --------
@@ -467,13 +564,49 @@ def fuse(estimates: Sequence[Any], method: str = "ci", *, horizon: Optional[int]
     >>> r = fuse([a, b], method="ci", horizon=5, model=model)
     >>> r.info["rule"], r.info["horizon"]["steps"], bool(r.info["converged"])
     ('horizon', 5, True)
+
+    A position-only estimate fused into a position-velocity one (generalised CI):
+
+    >>> position = (np.array([0.5]), np.array([[0.5]]))
+    >>> r = fuse([a, position], H=[None, np.array([[1.0, 0.0]])])
+    >>> r.x.shape, r.info["gains"][1].shape
+    ((2,), (2, 1))
+
+    An estimate two seconds older than the other, predicted by a constant-velocity model:
+
+    >>> def motion(dt):
+    ...     return np.array([[1.0, dt], [0.0, 1.0]]), 0.01 * dt * np.eye(2)
+    >>> r = fuse([a, b], times=[0.0, 2.0], motion=motion)
+    >>> r.info["at"]
+    2.0
     """
-    return fuse_estimates(estimates, method, options, horizon=horizon, model=model)
+    return fuse_estimates(estimates, method, options, horizon=horizon, model=model, H=H,
+                          residual=residual, add=add, times=times, at=at, motion=motion)
+
+
+def _front_door_refusal(record, option):
+    """The error for a front-door option the rule's record does not declare."""
+    given, meaning = FRONT_DOOR_OPTIONS[option]
+    supporting = [name for name, r in _REGISTRY.items() if option in r.front_door]
+    keyword = given.split(" ")[0].rstrip(",")
+    if option == "H":
+        return ValueError(
+            f"method {record.name!r} does not accept H=; the rules that accept H are "
+            f"{', '.join(map(repr, supporting)) or 'none'}"
+        )
+    return ValueError(
+        f"method {record.name!r} does not accept {keyword}; the rules that {meaning} are "
+        f"{', '.join(map(repr, supporting)) or 'none'}"
+    )
 
 
 def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, Any], *,
                    horizon: Optional[int] = None, model: Any = None,
-                   labels: Optional[Sequence[str]] = None) -> FusionResult:
+                   labels: Optional[Sequence[str]] = None, H: Optional[Sequence[Any]] = None,
+                   residual: Optional[Callable[..., Any]] = None,
+                   add: Optional[Callable[..., Any]] = None,
+                   times: Optional[Sequence[float]] = None, at: Optional[float] = None,
+                   motion: Optional[Callable[..., Any]] = None) -> FusionResult:
     """:func:`fuse` with the options as a mapping and optional labels for the messages.
 
     With ``labels`` (one string per estimate, e.g. ``("this filter", "other")``) messages
@@ -487,6 +620,17 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
     pairs = [split_estimate(item, i, labels) for i, item in enumerate(estimates)]
     if len(pairs) < 2:
         raise ValueError(f"at least 2 estimates are needed, got {len(pairs)}")
+    Hs = check_observation_matrices(H, len(pairs))
+    requested = [option for option, given in (("H", Hs is not None),
+                                              ("residual", residual is not None
+                                               or add is not None),
+                                              ("times", times is not None)) if given]
+    if times is None and (at is not None or motion is not None):
+        raise ValueError("at= and motion= bring estimates of other times to one time; give "
+                         "times= (one time per estimate) too")
+    for option in requested:
+        if option not in record.front_door:
+            raise _front_door_refusal(record, option)
     if horizon is None and model is not None:
         raise ValueError("model= describes the steps after the fusion; give horizon= too")
     if horizon is not None and record.horizon is None:
@@ -495,16 +639,27 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
             f"method {record.name!r} does not support horizon=; the methods that choose "
             f"their weights for a horizon are {', '.join(map(repr, supporting))}"
         )
+    if horizon is not None and Hs is not None:
+        raise ValueError("horizon= chooses weights for estimates of the full state; it "
+                         "does not support H=")
     if horizon is None:  # with horizon= the rule's hook checks the options it takes
         _check_options(record, options)
     names = ("estimates' x", "estimates' P") if labels is None else ("x", "P")
-    stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs], names=names,
-                           labels=labels)
-    if horizon is not None:
-        return _fuse_for_horizon(record, stacked, horizon, model, options)
+    if not requested:
+        stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs], names=names,
+                               labels=labels)
+        if horizon is not None:
+            return _fuse_for_horizon(record, stacked, horizon, model, options)
+        return _call_rule(record, stacked, options)
+    return _fuse_through_front_door(record, pairs, options, horizon, model, labels, names, Hs,
+                                    residual, add, times, at, motion)
+
+
+def _call_rule(record, estimates, options):
+    """The rule's core on validated estimates (or its function, restyled)."""
     if record.core is not None:
-        return record.core(stacked, **options)
-    result = record.function(stacked.x, stacked.P, **options)
+        return record.core(estimates, **options)
+    result = record.function(estimates.x, estimates.P, **options)
     if not isinstance(result, FusionResult):
         raise TypeError(
             f"fusion method {record.name!r} returned {type(result).__name__}, not FusionResult"
@@ -512,7 +667,76 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
     x = np.asarray(result.x)
     if x.shape[-1:] == (1,) and x.shape[:-1] == result.P.shape[:-1]:
         x = x[..., 0]  # a rule answered in column style; normalise before restyling
-    return result.replace(x=restore_style(x, stacked.column))
+    return result.replace(x=restore_style(x, estimates.column))
+
+
+def _fuse_through_front_door(record, pairs, options, horizon, model, labels, names, Hs,
+                             residual, add, times, at, motion):
+    """Validate once, bring the estimates to one time and to residuals, run the rule and
+    add the fused residual back (``docs/methods/partial_state.rst``, ``time.rst``)."""
+    count = len(pairs)
+    where = [f"estimates[{i}]" if labels is None else labels[i] for i in range(count)]
+    if Hs is None:
+        # (validated copies: the aligned estimates are written into them)
+        stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs], names=names,
+                               labels=labels)
+        x = [stacked.x[..., i, :] for i in range(count)]
+        L = [stacked.L[..., i, :, :] for i in range(count)]
+        n, column, H = stacked.dim, stacked.column, (None,) * count
+    else:
+        partial = as_partial_estimates(pairs, Hs, labels)
+        x, L, P = list(partial.x), list(partial.L), list(partial.P)
+        n, column, H = partial.dim, partial.column, partial.H
+    extra: dict[str, Any] = {}
+    if times is not None:
+        times, at = check_times(times, count, at)
+        x, P_new, alpha, changed = align_in_time(x, L, [h is None for h in H], times, at,
+                                                 motion, n, where)
+        for i in changed:
+            L_new = cholesky(P_new[i], f"{where[i]}'s P brought to at={at:g}")
+            if Hs is None:
+                stacked.x[..., i, :], stacked.P[..., i, :, :] = x[i], P_new[i]
+                stacked.L[..., i, :, :] = L_new
+            else:
+                P[i], L[i] = P_new[i], L_new
+        extra.update(at=at, retrodiction_alpha=tuple(alpha))
+    reference = None
+    if residual is not None or add is not None:
+        residual = np.subtract if residual is None else residual
+        add = np.add if add is None else add
+        for name, function in (("residual", residual), ("add", add)):
+            if not callable(function):
+                raise TypeError(f"{name} must be callable, got {type(function).__name__}")
+        if H[0] is not None:
+            raise ValueError("residual= and add= fuse residuals relative to the first "
+                             "estimate, which must estimate the full state (H[0] None)")
+        batch = np.broadcast_shapes(*(xi.shape[:-1] for xi in x))
+        x = [np.broadcast_to(xi, batch + xi.shape[-1:]) for xi in x]
+        reference = np.array(x[0])
+        x = residuals_to_reference(x, H, residual)
+        if Hs is None:
+            for i in range(count):
+                stacked.x[..., i, :] = x[i]
+    if Hs is None:
+        estimates: Any = stacked
+    else:
+        estimates = PartialEstimates(tuple(x), tuple(P), tuple(L), H, n, column)
+    if horizon is not None:
+        result = _fuse_for_horizon(record, estimates, horizon, model, options)
+    else:
+        result = _call_rule(record, estimates, options)
+    if reference is None and not extra:
+        return result
+    changes: dict[str, Any] = {}
+    if reference is not None:
+        fused = np.asarray(result.x)
+        fused = fused[..., 0] if column else fused
+        changes["x"] = restore_style(added_to_reference(reference, fused, add), column)
+    if extra:
+        info = dict(result.info)
+        info.update(extra)
+        changes["info"] = info
+    return result.replace(**changes)
 
 
 def _fuse_for_horizon(record, estimates, steps, model, options):

@@ -5,10 +5,14 @@ lets its users fuse tracks whose cross-correlation is unknown with any rule regi
 cifilter, with optimal weights:
 
 * :class:`FusionUpdater`, an ``Updater`` that can replace Stone Soup's ``ChernoffUpdater``
-  (track-to-track fusion with ``Tracks2GaussianDetectionFeeder`` detections);
+  (track-to-track fusion with ``Tracks2GaussianDetectionFeeder`` detections), and that also
+  fuses detections of part of the state (a linear measurement model's ``matrix()`` as
+  ``H``: generalised CI, :func:`cifilter.fuse` with ``H=``);
 * :class:`OptimalCovarianceIntersection`, a drop-in for Stone Soup's
   ``CovarianceIntersection`` reducer (``merge_components``) with optimal weights;
-* :func:`fuse_tracks`, which predicts tracks to a common time and fuses them;
+* :func:`fuse_tracks`, which brings tracks to a common time (predicting older ones and
+  retrodicting newer ones, through :func:`cifilter.fuse`'s ``times=``/``at=``/``motion=``)
+  and fuses them;
 * :func:`to_estimate` and :func:`to_gaussian_state`, conversions between Stone Soup states
   and cifilter's ``(x, P)``; particle, ensemble and mixture states are moment-matched and
   say so with a :class:`MomentMatchedWarning`.
@@ -29,8 +33,9 @@ from numpy.typing import ArrayLike, NDArray
 try:
     from stonesoup.base import Property
     from stonesoup.mixturereducer.base import MixtureReducer
+    from stonesoup.models.base import LinearModel
     from stonesoup.models.measurement import MeasurementModel
-    from stonesoup.predictor.kalman import ExtendedKalmanPredictor
+    from stonesoup.models.transition import TransitionModel
     from stonesoup.types.array import CovarianceMatrix, StateVector
     from stonesoup.types.mixture import GaussianMixture
     from stonesoup.types.prediction import MeasurementPrediction
@@ -337,6 +342,36 @@ def _gate_omega(A, B, criterion):
     return float(np.clip(b / (a + b), 1e-12, 1 - 1e-12))
 
 
+def _observation_matrix(measurement_model, n):
+    """``H`` of a detection whose model is ``measurement_model`` and a state of dimension n.
+
+    None for a full-state detection (``matrix()`` the n x n identity, as the models of
+    ``Tracks2GaussianDetectionFeeder`` have): those keep the full-state path bit for bit.
+    A model that is not linear raises a TypeError: its detection is not an estimate of
+    ``H x``, and a linearisation at the prediction would lose the Covariance Intersection
+    bound (docs/stonesoup.rst, "Detections of part of the state").
+    """
+    kind = type(measurement_model).__name__
+    if not isinstance(measurement_model, LinearModel):
+        raise TypeError(
+            f"the detection's measurement model must be linear (a Stone Soup LinearModel "
+            f"such as LinearGaussian, whose matrix() is the H of an estimate of H x), got "
+            f"{kind}: a non-linear detection linearised at the prediction (its Jacobian) "
+            "would not keep the Covariance Intersection bound, so FusionUpdater refuses it; "
+            "track such detections with an extended or unscented Kalman filter first and "
+            "fuse the tracks (Tracks2GaussianDetectionFeeder)")
+    H = as_float_array(measurement_model.matrix(), f"the {kind}'s matrix()")
+    if H.ndim != 2 or H.shape[0] == 0 or H.shape[1] != n:
+        raise ValueError(
+            f"the detection's measurement model ({kind}) has matrix() of shape {H.shape}, "
+            f"but the predicted state has {n} dimensions: it must be (m, {n})")
+    if not np.all(np.isfinite(H)):
+        raise ValueError(f"the {kind}'s matrix() contains non-finite values (NaN or inf)")
+    if H.shape == (n, n) and np.array_equal(H, np.eye(n)):
+        return None
+    return H
+
+
 class FusionUpdater(Updater):
     r"""A Stone Soup updater that fuses Gaussian detections with cifilter's rules.
 
@@ -356,6 +391,24 @@ class FusionUpdater(Updater):
     ``omega=None`` (the default) it is chosen per hypothesis to minimise ``criterion``
     of ``D``; a number fixes it, and the update is then ``ChernoffUpdater(omega=omega)``'s.
 
+    *Detections of part of the state.* A detection whose measurement model is linear with
+    ``H = measurement_model.matrix()`` other than the identity (for instance
+    ``LinearGaussian(4, [0, 2], R)``, a position of a constant-velocity state) is fused as
+    an estimate :math:`(a, A)` of :math:`H x`: ``cifilter.fuse([(a, A), (b, B)], method,
+    H=[H, None], ...)``, generalised CI for ``"ci"``,
+
+    .. math::
+
+        D^{-1} = \omega H^T A^{-1} H + (1-\omega) B^{-1}, \qquad
+        d = D(\omega H^T A^{-1} a + (1-\omega) B^{-1} b),
+
+    a bound for every correlation of the two errors (``docs/methods/partial_state.rst``).
+    ``"naive"`` and ``"optimal"`` (``joint`` of the detection first) accept such a
+    detection too; ``"split-ci"`` takes a partial estimate only second and is refused here,
+    and the other rules refuse ``H=`` with the front door's message.
+    A non-linear measurement model raises a TypeError (see the documentation page for why
+    its Jacobian is not used). Full-state detections take the path above unchanged.
+
     :meth:`predict_measurement` gives the innovation covariance the gaters and
     hypothesisers use. With a fixed ``omega`` it is Clark & Campbell's
     :math:`V = A/(1-\omega) + B/\omega`, computed as ``ChernoffUpdater`` computes it
@@ -364,7 +417,9 @@ class FusionUpdater(Updater):
     smallest under ``criterion`` (every member bounds the covariance of :math:`a - b` for
     any correlation of the two errors; the fusion's own ``omega`` may be 0 or 1, where
     Clark & Campbell's formula is infinite). With ``method="naive"`` it is ``A + B``.
-    Stone Soup's formula and the normalising constant of the Chernoff density differ when
+    For a detection of :math:`H x` the same holds in measurement space with
+    :math:`H B H^T` for :math:`B` (the innovation is :math:`a - H b`). Stone Soup's
+    formula and the normalising constant of the Chernoff density differ when
     ``omega != 1/2`` (see the documentation page).
 
     Parameters
@@ -381,7 +436,8 @@ class FusionUpdater(Updater):
         ``"ci"``.
     criterion : {"trace", "det"} or array_like, optional
         What the optimal weights minimise, for rules that take a criterion (``"ci"``);
-        default ``"trace"``.
+        default ``"trace"``. A weight matrix is of the state's size; for a detection of
+        part of the state the gate of :meth:`predict_measurement` then uses the trace.
     options : dict, optional
         Further options of the rule, for instance ``{"rho": 0.3}`` for ``"pci"``.
 
@@ -407,7 +463,7 @@ class FusionUpdater(Updater):
     --------
     >>> import numpy as np
     >>> from stonesoup.models.measurement.linear import LinearGaussian
-    >>> from stonesoup.types.detection import GaussianDetection
+    >>> from stonesoup.types.detection import Detection, GaussianDetection
     >>> from stonesoup.types.hypothesis import SingleHypothesis
     >>> from stonesoup.types.prediction import GaussianStatePrediction
     >>> from cifilter.stonesoup import FusionUpdater
@@ -418,6 +474,15 @@ class FusionUpdater(Updater):
     >>> update = FusionUpdater().update(SingleHypothesis(prediction, detection))
     >>> float(np.trace(update.covar))
     3.2
+
+    A position-only detection (variance 1) of the same state: the determinant-optimal
+    weight of the prediction is 2/3, so the position's variance is
+    ``1 / ((2/3) / 4 + (1/3) / 1) = 2`` and the velocity's ``1 / (2/3) = 1.5``:
+
+    >>> position = Detection([[1.0]], measurement_model=LinearGaussian(2, [0], [[1.0]]))
+    >>> update = FusionUpdater(criterion="det").update(SingleHypothesis(prediction, position))
+    >>> np.round(update.covar, 6).tolist()
+    [[2.0, 0.0], [0.0, 1.5]]
     """
 
     measurement_model: MeasurementModel = Property(
@@ -464,23 +529,30 @@ class FusionUpdater(Updater):
             The predicted state :math:`(b, B)`.
         measurement_model : MeasurementModel, optional
             The detection's model, whose noise covariance is the detection covariance
-            :math:`A`; default: the updater's.
+            :math:`A`; default: the updater's. A linear model whose ``matrix()`` :math:`H`
+            is not the identity describes a detection of :math:`H x`.
         measurement_noise : bool, optional
             Whether to include the detection's covariance (default True); False gives
-            :math:`B` alone, as in ``ChernoffUpdater``.
+            :math:`B` alone (:math:`H B H^T` for a detection of :math:`H x`), as in
+            ``ChernoffUpdater`` and ``KalmanUpdater``.
         **kwargs
             Ignored (accepted for the Updater interface).
 
         Returns
         -------
         MeasurementPrediction
-            Mean :math:`b`, covariance the innovation covariance :math:`V` (see the class
-            notes), cross-covariance :math:`B`.
+            In measurement space: mean :math:`H b`, covariance the innovation covariance
+            :math:`V` (see the class notes), cross-covariance :math:`B H^T`; for a
+            full-state detection :math:`b`, :math:`V` and :math:`B`, as
+            ``ChernoffUpdater`` returns them.
 
         Raises
         ------
         ValueError
-            No measurement model, or a detection covariance whose size is not the state's.
+            No measurement model, a model matrix without one column per state dimension,
+            or a detection covariance whose size is not the model's number of rows.
+        TypeError
+            A measurement model that is not linear.
 
         Examples
         --------
@@ -493,15 +565,27 @@ class FusionUpdater(Updater):
         >>> V = FusionUpdater(omega=0.25).predict_measurement(prediction, model).covar
         >>> np.diag(V).tolist()   # A / 0.75 + B / 0.25
         [13.333333333333334, 13.333333333333334]
+
+        A detection of the first component only (:math:`H = [1, 0]`):
+
+        >>> first = LinearGaussian(2, [0], [[1.0]])
+        >>> V = FusionUpdater(omega=0.25).predict_measurement(prediction, first).covar
+        >>> V.tolist()   # A / 0.75 + H B H^T / 0.25
+        [[13.333333333333334]]
         """
         measurement_model = self._check_measurement_model(measurement_model)
         B = np.asarray(predicted_state.covar, float)
+        H = _observation_matrix(measurement_model, B.shape[0])
+        if H is not None:
+            return self._partial_prediction(predicted_state, measurement_model, H, B,
+                                            measurement_noise)
         if measurement_noise:
             A = np.asarray(measurement_model.noise_covar, float)
             if A.shape != B.shape:
                 raise ValueError(
                     f"the detection covariance {A.shape} must be of the state's size {B.shape}: "
-                    "the detections of a fusion updater are estimates of the full state")
+                    "the measurement model's matrix() is the identity, so the detection is "
+                    "an estimate of the full state")
             innovation = self._innovation_covariance(A, B)
         else:
             innovation = B
@@ -509,7 +593,28 @@ class FusionUpdater(Updater):
             predicted_state, predicted_state.state_vector, CovarianceMatrix(innovation),
             predicted_state.timestamp, cross_covar=predicted_state.covar)
 
-    def _innovation_covariance(self, A, B):
+    def _partial_prediction(self, predicted_state, measurement_model, H, B,
+                            measurement_noise):
+        """The measurement prediction of a detection of ``H x`` (measurement space)."""
+        b = np.asarray(predicted_state.state_vector, float)
+        BH = H @ B @ H.T  # as KalmanUpdater forms it; V is symmetrised below
+        if measurement_noise:
+            A = np.asarray(measurement_model.noise_covar, float)
+            m = H.shape[0]
+            if A.shape != (m, m):
+                raise ValueError(
+                    f"the detection covariance {A.shape} must be ({m}, {m}): the measurement "
+                    f"model's matrix() has shape {H.shape}")
+            innovation = self._innovation_covariance(A, BH, partial=True)
+        else:
+            innovation = BH
+        return MeasurementPrediction.from_state(
+            predicted_state, StateVector(H @ b), CovarianceMatrix(innovation),
+            predicted_state.timestamp, cross_covar=CovarianceMatrix(B @ H.T))
+
+    def _innovation_covariance(self, A, B, partial=False):
+        """Clark & Campbell's family ``A/(1-w) + B/w`` at the fixed or the gate's ``w``
+        (``B`` is ``H B H^T`` for a detection of part of the state)."""
         name, _ = self._rule()
         if name == "naive":
             V = A + B
@@ -517,7 +622,17 @@ class FusionUpdater(Updater):
             # As ChernoffUpdater computes it, multiplying by the reciprocals (A / (1 - w)
             # rounds differently, by up to an ulp): the drop-in is bitwise equal at fixed w.
             w = float(self.omega)
-            return 1 / (1 - w) * A + 1 / w * B
+            if not partial:
+                return 1 / (1 - w) * A + 1 / w * B
+            V = 1 / (1 - w) * A + 1 / w * B
+        elif partial:
+            # In measurement space; a weight matrix weighs the state: the gate uses the trace.
+            # The roles swapped (t = 1 - w) so that the generalised eigenvalues of the det
+            # gate are taken against A, which is positive definite while H B H^T need not be
+            # (an H of dependent rows).
+            criterion = self.criterion if isinstance(self.criterion, str) else "trace"
+            t = _gate_omega(B, A, criterion)
+            V = A / t + B / (1 - t)
         else:
             w = _gate_omega(A, B, self.criterion)
             V = A / (1 - w) + B / w
@@ -529,19 +644,27 @@ class FusionUpdater(Updater):
         Parameters
         ----------
         hypothesis : SingleHypothesis
-            A hypothesis with a prediction and a Gaussian detection of the full state.
+            A hypothesis with a prediction and a Gaussian detection: of the full state, or
+            of :math:`H x` for a linear measurement model with ``matrix()`` :math:`H`.
 
         Returns
         -------
         FusionResult
             The rule's result: ``x`` (n, 1), ``P``, ``weights`` (the detection's first:
-            for ``"ci"``, ``weights[0]`` is ``omega``), ``info``.
+            for ``"ci"``, ``weights[0]`` is ``omega``), ``info``. For a detection of
+            :math:`H x` it is ``cifilter.fuse([(a, A), (b, B)], method, H=[H, None])``'s:
+            ``gains`` is None and ``info["gains"]`` holds the gains (n x m, n x n).
 
         Raises
         ------
         ValueError
             Bad covariances (not symmetric positive definite, mismatched sizes), as
-            :func:`cifilter.fuse` raises them.
+            :func:`cifilter.fuse` raises them; a detection whose size is not the number of
+            rows of its model's matrix; a rule that does not accept ``H=`` (or
+            ``"split-ci"``, which takes a partial estimate only second) for a detection of
+            part of the state.
+        TypeError
+            A measurement model that is not linear.
 
         Examples
         --------
@@ -562,16 +685,30 @@ class FusionUpdater(Updater):
         """
         measurement = hypothesis.measurement
         model = self._check_measurement_model(measurement.measurement_model)
-        a, A = self._detection_estimate(measurement, model)
         prediction = hypothesis.prediction
         b, B = np.asarray(prediction.state_vector, float), np.asarray(prediction.covar, float)
-        if a.shape != b.shape:
-            raise ValueError(
-                f"the detection {a.shape} must be an estimate of the full state {b.shape}")
+        H = _observation_matrix(model, b.shape[0])
+        a, A = self._detection_estimate(measurement, model)
         name, options = self._rule()
         if options.get("omega") is not None:
             options["omega"] = float(options["omega"])
-        return fuse([(a, A), (b, B)], method=name, **options)
+        if H is None:
+            if a.shape != b.shape:
+                raise ValueError(
+                    f"the detection {a.shape} must be an estimate of the full state {b.shape}: "
+                    "its measurement model's matrix() is the identity")
+            return fuse([(a, A), (b, B)], method=name, **options)
+        if a.shape != (H.shape[0], 1):
+            raise ValueError(
+                f"the detection {a.shape} must have one entry per row of its measurement "
+                f"model's matrix() {H.shape}")
+        if name == "split-ci":
+            raise ValueError(
+                "method 'split-ci' fuses an estimate of part of the state only as the second "
+                "of two (H=[None, H_2]), but FusionUpdater fuses the detection first; fuse "
+                "this detection with 'ci', 'naive' or 'optimal', or call cifilter.fuse([(b, "
+                "B), (a, A)], 'split-ci', H=[None, H], independent=...) yourself")
+        return fuse([(a, A), (b, B)], method=name, H=[H, None], **options)
 
     def update(self, hypothesis: Any, force_symmetric_covariance: bool = False,
                **kwargs: Any) -> Update:
@@ -580,8 +717,9 @@ class FusionUpdater(Updater):
         Parameters
         ----------
         hypothesis : SingleHypothesis
-            The prediction and the associated Gaussian detection; its measurement
-            prediction is computed if missing (as ``ChernoffUpdater`` does).
+            The prediction and the associated Gaussian detection (of the full state or of
+            :math:`H x`); its measurement prediction is computed if missing (as
+            ``ChernoffUpdater`` does).
         force_symmetric_covariance : bool, optional
             Accepted for ``ChernoffUpdater`` compatibility; cifilter's covariances are
             exactly symmetric already.
@@ -591,12 +729,14 @@ class FusionUpdater(Updater):
         Returns
         -------
         GaussianStateUpdate
-            The fused state, at the detection's timestamp.
+            The fused state (of the full state), at the detection's timestamp.
 
         Raises
         ------
         ValueError
-            Bad covariances or a detection that is not of the full state.
+            Bad covariances, a detection whose size does not match its model.
+        TypeError
+            A measurement model that is not linear.
 
         Examples
         --------
@@ -805,17 +945,57 @@ class OptimalCovarianceIntersection(MixtureReducer):
 
 
 # ---------------------------------------------------------------------------- track fusion
+_TIME_KEYWORDS = ("times", "at", "motion")
+
+
+def _transition_motion(transition_model, intervals):
+    """``motion(dt) -> (F, Q)`` of :func:`cifilter.fuse` from a linear Stone Soup transition
+    model: ``matrix(time_interval=)`` and ``covar(time_interval=)`` as plain float arrays.
+
+    ``intervals`` maps the seconds the front door asks for (``abs(at - times[i])``, exact
+    as floats) to the tracks' exact ``timedelta`` offsets, so that the model sees the very
+    interval between the timestamps (microseconds, not a float round trip).
+    """
+    kind = type(transition_model).__name__
+    if not (isinstance(transition_model, TransitionModel)
+            and isinstance(transition_model, LinearModel)):
+        raise TypeError(
+            f"transition_model must be a linear Stone Soup transition model (a LinearModel "
+            f"TransitionModel such as ConstantVelocity or CombinedLinearGaussianTransitionModel,"
+            f" with matrix(time_interval=) and covar(time_interval=)), got {kind}: fuse_tracks "
+            "brings tracks of other times to timestamp with F and Q, through "
+            "cifilter.fuse(times=, at=, motion=)")
+
+    def motion(dt):
+        interval = intervals.get(dt)
+        if interval is None:  # not asked by fuse_tracks' own times; kept well-defined
+            interval = datetime.timedelta(seconds=dt)
+        F = np.array(transition_model.matrix(time_interval=interval), dtype=float)
+        Q = np.array(transition_model.covar(time_interval=interval), dtype=float)
+        return F, Q
+
+    return motion
+
+
 def fuse_tracks(tracks: Sequence[Any], method: str = "ci",
                 timestamp: Optional[datetime.datetime] = None, transition_model: Any = None, *,
                 return_result: bool = False,
                 **options: Any) -> Union[GaussianState, tuple[GaussianState, FusionResult]]:
-    """Fuse the latest states of tracks, predicted to a common time.
+    r"""Fuse the latest states of tracks, brought to a common time.
 
     Each track's latest state is converted by :func:`to_estimate` (particle and mixture
-    states moment-matched, with a :class:`MomentMatchedWarning`), predicted to
-    ``timestamp`` with ``transition_model`` by Stone Soup's ``ExtendedKalmanPredictor``
-    (the Kalman prediction for a linear model), and all are fused by
-    :func:`cifilter.fuse` with ``method``.
+    states moment-matched, with a :class:`MomentMatchedWarning`). When all are at
+    ``timestamp`` they are fused by ``cifilter.fuse(estimates, method, **options)``.
+    Otherwise the front door's time alignment brings them there: ``cifilter.fuse(estimates,
+    method, times=..., at=0.0, motion=..., **options)`` with ``times[i]`` the seconds from
+    ``timestamp`` to track ``i``'s latest state and ``motion(dt)`` the ``F =
+    transition_model.matrix(time_interval=dt)`` and ``Q = transition_model.covar(
+    time_interval=dt)`` of the exact interval. An older state is predicted
+    (:math:`F x`, :math:`F P F^T + Q`); a *newer* one is retrodicted with the conservative
+    bound :math:`F^{-1}(P/\alpha + Q/(1-\alpha))F^{-T}` (its error is correlated with the
+    process noise in between; ``docs/methods/time.rst``). The rules that accept ``times=``
+    (``"ci"``) fuse tracks of different times; the others refuse them with the front
+    door's message.
 
     Parameters
     ----------
@@ -825,13 +1005,18 @@ def fuse_tracks(tracks: Sequence[Any], method: str = "ci",
         A registered cifilter rule; default ``"ci"`` (optimal trace weights).
     timestamp : datetime.datetime, optional
         The time of the fused state; default: the latest of the tracks' latest times.
-        It may not be earlier than any track's latest state (no retrodiction).
+        Tracks later than it are retrodicted.
     transition_model : TransitionModel, optional
-        Needed when the tracks' latest states are not all at ``timestamp``.
+        A linear Stone Soup transition model; needed when the tracks' latest states are
+        not all at ``timestamp``.
     return_result : bool, optional
-        Also return the :class:`~cifilter.FusionResult` (weights, diagnostics).
+        Also return the :class:`~cifilter.FusionResult` (weights, diagnostics; when the
+        tracks were brought to ``timestamp``, ``info["at"]`` is ``0.0``, the seconds from
+        ``timestamp``, and ``info["retrodiction_alpha"]`` the :math:`\alpha` of each track,
+        None unless retrodicted).
     **options
-        Options of the rule, for instance ``criterion="det"`` or ``rho=0.3``.
+        Options of the rule, for instance ``criterion="det"`` or ``rho=0.3`` (not
+        ``times``, ``at`` or ``motion``: they come from the tracks and ``timestamp``).
 
     Returns
     -------
@@ -842,11 +1027,17 @@ def fuse_tracks(tracks: Sequence[Any], method: str = "ci",
     Raises
     ------
     ValueError
-        Fewer than two tracks, an empty track, a state later than ``timestamp``, a
-        prediction needed without ``transition_model``, states of different dimensions,
-        bad covariances.
+        Fewer than two tracks, an empty track, a state at another time than
+        ``timestamp`` without ``transition_model``, a state without a timestamp among
+        states with one, a rule that does not accept ``times=`` for tracks of different
+        times, states of different dimensions, bad covariances.
     TypeError
-        A track that is not a Stone Soup track or state.
+        A track that is not a Stone Soup track or state, a ``transition_model`` that is not
+        a linear transition model (when one is needed), ``times``, ``at`` or ``motion``
+        among the options.
+    IllConditionedError
+        A newer track whose transition matrix is singular (retrodiction needs
+        :math:`F^{-1}`), as :func:`cifilter.fuse` raises it.
 
     Warns
     -----
@@ -868,9 +1059,21 @@ def fuse_tracks(tracks: Sequence[Any], method: str = "ci",
     >>> fused = fuse_tracks([a, b], transition_model=ConstantVelocity(0.1))
     >>> fused.timestamp == t0 + timedelta(seconds=1), fused.state_vector.shape
     (True, (2, 1))
+
+    At ``a``'s time, ``b`` (one second newer) is retrodicted:
+
+    >>> fused, result = fuse_tracks([a, b], timestamp=t0, return_result=True,
+    ...                             transition_model=ConstantVelocity(0.1))
+    >>> fused.timestamp == t0, result.info["retrodiction_alpha"][0]
+    (True, None)
     """
     if isinstance(tracks, (str, bytes)) or not hasattr(tracks, "__len__"):
         raise TypeError(f"tracks must be a sequence of tracks, got {type(tracks).__name__}")
+    reserved = [name for name in _TIME_KEYWORDS if name in options]
+    if reserved:
+        raise TypeError(
+            f"fuse_tracks sets {', '.join(reserved)} itself, from the tracks' timestamps, "
+            "timestamp and transition_model; give timestamp= and transition_model= instead")
     states = [_latest_state(track) for track in tracks]
     if len(states) < 2:
         raise ValueError(f"at least 2 tracks are needed, got {len(states)}")
@@ -879,26 +1082,30 @@ def fuse_tracks(tracks: Sequence[Any], method: str = "ci",
         known = [t for t in times if t is not None]
         timestamp = max(known) if known else None
     estimates = []
+    offsets = []
     for index, (state, time) in enumerate(zip(states, times)):
         x, P = to_estimate(state)
-        if time != timestamp:
-            if time is None or timestamp is None:
-                raise ValueError(
-                    f"tracks[{index}]: cannot predict between a state without a timestamp "
-                    "and a timestamp")
-            if time > timestamp:
-                raise ValueError(
-                    f"tracks[{index}]'s latest state ({time}) is later than timestamp "
-                    f"({timestamp}); fuse_tracks predicts forward only")
-            if transition_model is None:
-                raise ValueError(
-                    f"tracks[{index}]'s latest state ({time}) is not at timestamp "
-                    f"({timestamp}): give transition_model to predict it")
-            predicted = ExtendedKalmanPredictor(transition_model).predict(
-                GaussianState(StateVector(x.reshape(-1, 1)), CovarianceMatrix(P),
-                              timestamp=time), timestamp=timestamp)
-            x, P = to_estimate(predicted)
         estimates.append((x.reshape(-1, 1), P))
-    result = fuse(estimates, method=method, **options)
+        if time == timestamp:
+            offsets.append(datetime.timedelta(0))
+            continue
+        if time is None or timestamp is None:
+            raise ValueError(
+                f"tracks[{index}]: cannot bring a state without a timestamp to a timestamp, "
+                "or a state with one to no timestamp")
+        if transition_model is None:
+            raise ValueError(
+                f"tracks[{index}]'s latest state ({time}) is not at timestamp "
+                f"({timestamp}): give transition_model to "
+                f"{'predict' if time < timestamp else 'retrodict'} it")
+        offsets.append(time - timestamp)
+    if not any(offsets):
+        result = fuse(estimates, method=method, **options)
+    else:
+        seconds = [offset.total_seconds() for offset in offsets]
+        intervals = {abs(s): abs(offset) for s, offset in zip(seconds, offsets)}
+        motion = _transition_motion(transition_model, intervals)
+        result = fuse(estimates, method=method, times=seconds, at=0.0, motion=motion,
+                      **options)
     state = to_gaussian_state(result, timestamp=timestamp)
     return (state, result) if return_result else state

@@ -332,3 +332,57 @@ def test_an_empty_registry_says_why(monkeypatch):
     with pytest.raises(ValueError, match=r"no fusion methods are registered; the built-in "
                                          r"rules are registered when the package is imported"):
         get_method("ci")
+
+
+# --------------------------------------------------- the front door's options (issue 22)
+def test_fuse_and_kf_fuse_have_the_contracted_keywords():
+    import inspect
+
+    contract = ["H", "residual", "add", "times", "at", "motion", "horizon", "model"]
+    parameters = inspect.signature(fuse).parameters
+    assert list(parameters)[:2] == ["estimates", "method"]
+    assert list(parameters)[2:10] == contract
+    assert all(parameters[name].kind is inspect.Parameter.KEYWORD_ONLY for name in contract)
+    assert parameters["method"].default == "ci"
+    on_filter = inspect.signature(cifilter.KalmanFilter.fuse).parameters
+    assert set(contract + ["lag"]) <= set(on_filter)
+
+
+@pytest.mark.parametrize("kwargs, error, message", [
+    (dict(front_door=("H", "angles")), ValueError, r"front_door may list .* got 'angles'"),
+    (dict(front_door=("H",)), TypeError, r"front_door=\('H',\) needs core="),
+])
+def test_bad_front_door_registrations_are_rejected(scratch_registry, kwargs, error, message):
+    with pytest.raises(error, match=message):
+        register_method("x", lambda xs, Ps: None, **kwargs)
+
+
+def test_a_users_rule_gets_the_front_door_options_it_declares(scratch_registry):
+    def first(xs, Ps):
+        gains = np.zeros(Ps.shape)
+        gains[..., 0, :, :] = np.eye(Ps.shape[-1])
+        return FusionResult(xs[..., 0, :], Ps[..., 0, :, :], "first", gains=gains)
+
+    def last(xs, Ps):
+        return FusionResult(xs[..., -1, :], Ps[..., -1, :, :], "last")
+
+    register_method("first", first, front_door="residual")
+    register_method("last", last, front_door=("residual", "times"))
+    pair = [(np.array([1.0, 2.0]), np.eye(2)), (np.array([3.0, 5.0]), np.eye(2))]
+    r = fuse(pair, "last", residual=lambda a, b: 2.0 * (a - b))
+    np.testing.assert_array_equal(r.x, [5.0, 8.0])  # x_1 + residual(x_2, x_1)
+
+    def motion(dt):
+        return np.array([[1.0, dt], [0.0, 1.0]]), np.zeros((2, 2))
+
+    r = fuse(pair, "last", times=[1.0, 0.0], motion=motion)  # the last, predicted 1 s
+    np.testing.assert_array_equal(r.x, [8.0, 5.0])
+    assert r.info["at"] == 1.0
+    with pytest.raises(ValueError, match=r"method 'first' does not accept times=; the rules "
+                                         r"that bring .* are 'ci', 'last'"):
+        fuse(pair, "first", times=[0.0, 0.0])
+    # the list of the rules that accept H is the registry's, not a fixed text
+    register_method("partial", first, core=lambda est: None, front_door=("H",))
+    with pytest.raises(ValueError, match=r"the rules that accept H are 'ci', 'naive', "
+                                         r"'optimal', 'split-ci', 'partial'$"):
+        fuse([pair[0], (np.zeros(1), np.eye(1))], "first", H=[None, np.eye(1, 2)])

@@ -7,7 +7,9 @@ Supported: filterpy 1.4.5 and 2.x. The classes inherit everything from the insta
 filterpy, so what filterpy 2.0 changed (``KalmanFilter.M`` of shape (dim_x, dim_z),
 ``UnscentedKalmanFilter(..., state_add=)``, ``Saver.to_array(flatten=)``, ``stats.NEES``)
 is there exactly when it is in filterpy; ``fuse`` uses only what both versions share
-(``x``, ``P``, ``x_post``, ``P_post`` and, for ``horizon=``, ``F``, ``Q``, ``H``, ``R``).
+(``x``, ``P``, ``x_post``, ``P_post``; for ``horizon=`` ``F``, ``Q``, ``H``, ``R``; for
+``lag=`` ``F`` and ``Q``; the UKF's ``residual_x`` and, from filterpy 2.0 on, its
+``state_add``).
 Until ``fuse`` is called a filter gives bit for bit the results of filterpy's class.
 (filterpy 1.4.5's ``KalmanFilter.mahalanobis``, and so its ``repr`` and ``Saver``, raise
 ``TypeError`` with recent numpy, seen with 2.4.6, for filterpy's own class alike.)
@@ -15,13 +17,15 @@ Until ``fuse`` is called a filter gives bit for bit the results of filterpy's cl
 
 import math
 import warnings
-from typing import Any, Optional
+from collections.abc import Sequence
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter as _FilterpyEKF
 from filterpy.kalman import KalmanFilter as _FilterpyKF
 from filterpy.kalman import UnscentedKalmanFilter as _FilterpyUKF
 
+from .._numerics.validation import check_int
 from ..registry import fuse_estimates, split_estimate
 from ..result import FusionResult
 
@@ -118,6 +122,60 @@ def _own_model(filt):
     return {name: getattr(filt, name) for name in ("F", "Q", "H", "R")}
 
 
+class _StepModel:
+    """``motion(k) -> (F^k, Q_k)`` for ``k`` whole steps of a filter's model (``lag=``):
+    ``Q_k = sum_{j<k} F^j Q F^jT``, accumulated as ``Q_k = F Q_{k-1} F^T + Q``."""
+
+    def __init__(self, F, Q):
+        self.F, self.Q = F, Q
+
+    def __call__(self, steps):
+        k = round(float(steps))
+        if k != steps or k < 1:
+            raise ValueError(f"lag= shifts by whole steps of the filter, got {steps}")
+        F_k, Q_k = self.F, self.Q
+        for _ in range(k - 1):
+            Q_k = self.F @ Q_k @ self.F.T + self.Q
+            F_k = self.F @ F_k
+        return F_k, (Q_k if k == 1 else 0.5 * (Q_k + Q_k.T))
+
+
+def _lag_times(lag, count):
+    """``times``, ``at`` for ``lag=``: this filter at 0, other ``i`` at ``-lag_i``."""
+    lags = list(lag) if isinstance(lag, (list, tuple)) else [lag] * (count - 1)
+    if len(lags) != count - 1:
+        raise ValueError(f"lag has {len(lags)} entries but there are {count - 1} other "
+                         "estimates; give one lag per other estimate, or one for all")
+    steps = [k if type(k) is int else check_int(k, "lag") for k in lags]
+    return (0.0,) + tuple(-float(k) for k in steps), 0.0
+
+
+def _own_step_model(filt):
+    """The filter's ``F`` and ``Q`` as a motion model of whole steps (``lag=``)."""
+    missing = [name for name in ("F", "Q")
+               if not isinstance(getattr(filt, name, None), np.ndarray)]
+    if missing:
+        raise ValueError(
+            f"lag= predicts or retrodicts with the filter's F and Q, but "
+            f"{type(filt).__name__} has no matrix {', '.join(missing)}; give times=, at= "
+            "and motion= (dt -> (F, Q)) instead"
+        )
+    return _StepModel(np.array(filt.F, dtype=float), np.array(filt.Q, dtype=float))
+
+
+def _own_residual(filt, residual, add):
+    """The filter's ``residual_x`` and ``state_add`` (UKF) unless given; plain subtraction
+    and addition count as none (the rule then fuses the means themselves)."""
+    if residual is None and add is None:
+        residual = getattr(filt, "residual_x", None)
+        add = getattr(filt, "state_add", None)
+    if residual is np.subtract:
+        residual = None
+    if add is np.add:
+        add = None
+    return residual, add
+
+
 class FusionMixin:
     """Adds :meth:`fuse` to a filterpy-style filter.
 
@@ -147,7 +205,11 @@ class FusionMixin:
     x_post: Any
     P_post: Any
 
-    def fuse(self, other: Any, method: str = "ci", *, horizon: Optional[int] = None,
+    def fuse(self, other: Any, method: str = "ci", *, H: Any = None,
+             residual: Optional[Callable[..., Any]] = None,
+             add: Optional[Callable[..., Any]] = None, times: Optional[Sequence[float]] = None,
+             at: Optional[float] = None, motion: Optional[Callable[..., Any]] = None,
+             lag: Union[int, Sequence[int], None] = None, horizon: Optional[int] = None,
              model: Any = None, future: Any = None, **options: Any) -> FusionResult:
         """Fuse this filter's estimate with other estimates whose correlation is unknown.
 
@@ -167,6 +229,34 @@ class FusionMixin:
         method : str, optional
             A registered fusion rule (see :func:`cifilter.available_methods`), default
             ``"ci"``.
+        H : array_like, shape (m, n), or sequence, optional
+            ``other`` estimates ``H x`` of this filter's state (m numbers, for instance a
+            position-only track of a position-velocity filter); for a list of others, one
+            entry per other (None for an estimate of the full state). This is
+            :func:`cifilter.fuse`'s ``H=`` with None for this filter, for the rules that
+            accept it (``"ci"``, ``"naive"``, ``"optimal"``, ``"split-ci"``).
+        residual, add : callable, optional
+            ``residual(a, b)`` (``a - b`` in the state space) and ``add(x, dx)``: the
+            others are fused as residuals relative to this filter's state and the fused
+            residual is added to it (:func:`cifilter.fuse`'s ``residual=``, ``add=``). By
+            default an :class:`UnscentedKalmanFilter` uses its own ``residual_x`` and, where
+            filterpy has it, ``state_add`` (plain subtraction and addition mean none).
+        times : sequence of float, optional
+            The time of each estimate, this filter's first (:func:`cifilter.fuse`'s
+            ``times=``).
+        at : float, optional
+            The time to fuse at; default this filter's own time ``times[0]`` (the fused
+            estimate replaces the filter's, so it describes the filter's time).
+        motion : callable, optional
+            ``motion(dt) -> (F, Q)`` bringing an estimate ``dt`` forward
+            (:func:`cifilter.fuse`'s ``motion=``).
+        lag : int or sequence of int, optional
+            ``other`` describes the state ``lag`` of this filter's steps ago: ``lag > 0``
+            predicts it ``lag`` steps with the filter's ``F`` and ``Q`` (exact);
+            ``lag < 0`` means ``|lag|`` steps ahead, brought back with ``F^-|lag|`` and the
+            accumulated ``Q_|lag| = sum_j F^j Q F^jT`` by the retrodiction bound of
+            ``docs/methods/time.rst`` (a ValueError if ``F`` is singular); 0 no shift. One
+            per other, or one for all. Instead of ``times``/``at``/``motion``.
         horizon : int, optional
             Choose the rule's weights for the bound ``horizon`` predict/update steps after
             the fusion (Ajgl et al. 2014), for the rules that support it (``"ci"``, and
@@ -202,9 +292,11 @@ class FusionMixin:
             positive definite, batched inputs, or a bad option value; ``horizon`` with a
             method other than ``"ci"`` and ``"pci"`` or together with ``omega`` (``"ci"``)
             or ``delta`` (``"pci"``), ``"pci"`` without ``rho``, ``model`` without
-            ``horizon``, a filter without a linear model and no ``model``. Messages name
-            the estimate: ``"this filter's P"``, ``"other's x"`` or ``"other[i]'s P"`` (for a
-            list).
+            ``horizon``, a filter without a linear model and no ``model``; ``H``,
+            ``residual`` or ``times``/``lag`` for a rule that does not accept them, ``lag``
+            together with ``times``, ``lag`` for a filter without ``F`` and ``Q``, a singular
+            ``F`` for ``lag < 0``. Messages name the estimate: ``"this filter's P"``,
+            ``"other's x"`` or ``"other[i]'s P"`` (for a list).
 
         Examples
         --------
@@ -229,6 +321,14 @@ class FusionMixin:
         ...                  horizon=10)
         >>> result.method, result.info["rule"], bool(result.info["converged"])
         ('pci', 'horizon', True)
+
+        A position-only estimate (``H`` picks the position) that is two steps old:
+
+        >>> kf.Q = 0.01 * np.eye(2)
+        >>> result = kf.fuse((np.array([0.5]), np.array([[0.2]])), H=np.array([[1.0, 0.0]]))
+        >>> result = kf.fuse((np.ones(2), np.eye(2)), lag=2)
+        >>> result.info["at"], kf.x.shape
+        (0.0, (2, 1))
         """
         others = _as_estimate_list(other)
         labels = _labels(1 + len(others), not (len(others) == 1 and others[0] is other))
@@ -241,8 +341,23 @@ class FusionMixin:
             model = future
         if horizon is not None and model is None:
             model = _own_model(self)
+        if H is not None:
+            H = [None, H] if len(others) == 1 and others[0] is other else [None] + list(H)
+        residual, add = _own_residual(self, residual, add)
+        if lag is not None:
+            if times is not None or at is not None or motion is not None:
+                raise ValueError("give lag= (steps of this filter) or times=, at= and "
+                                 "motion=, not both")
+            times, at = _lag_times(lag, len(estimates))
+            if any(times):
+                motion = _own_step_model(self)
+            else:  # lag 0: no shift
+                times = at = None
+        elif times is not None and at is None and hasattr(times, "__len__") and len(times):
+            at = times[0]  # the fused estimate replaces this filter's: its time
         result = fuse_estimates(estimates, method, options, horizon=horizon, model=model,
-                                labels=labels)
+                                labels=labels, H=H, residual=residual, add=add, times=times,
+                                at=at, motion=motion)
         x_shape = np.shape(self.x)
         x = np.asarray(result.x)
         if x.size != math.prod(x_shape) or np.shape(result.P) != np.shape(self.P):

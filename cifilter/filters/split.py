@@ -270,9 +270,13 @@ class SplitCIKalmanFilter(KalmanFilter):
             that rule's own default unless given.
         H : array_like, shape (m, dim_x), optional
             The single other estimate observes ``H x`` (a partial estimate of dimension
-            m); its parts are then m x m.
+            m); its parts are then m x m. With another ``method``, passed on as
+            :meth:`cifilter.FusionMixin.fuse`'s ``H=`` (for the rules that accept it).
         **options
-            Options of another rule (only with ``method`` other than ``"split-ci"``).
+            Options of another rule, and the other front-door options of
+            :meth:`cifilter.FusionMixin.fuse` (``residual``, ``add``, ``times``, ``at``,
+            ``motion``, ``lag``, ``horizon``, ``model``); only with ``method`` other than
+            ``"split-ci"``.
 
         Returns
         -------
@@ -300,7 +304,7 @@ class SplitCIKalmanFilter(KalmanFilter):
         """
         if method != "split-ci":
             if H is not None:
-                raise TypeError("H= is an option of method='split-ci' only")
+                options = dict(options, H=H)
             result = _fuse_with_rule(self, other, method, criterion, options)
             P = np.array(self.P, dtype=float)
             self.P_ind, self.P_dep, self._split_of = np.zeros_like(P), P.copy(), P.copy()

@@ -16,11 +16,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._kernels import dispatch as kernels
+from .._numerics.alignment import PartialEstimates
 from .._numerics.criteria import criterion_report, parse_criterion
 from .._numerics.information import weighted_fusion
 from .._numerics.validation import as_covariances, as_estimates, check_weights, restore_style
 from ..result import FusionResult
 from ._ci_weights import FAST_OMEGA_RULES, optimal_weights
+from ._generalised_ci import generalised_ci
 
 __all__ = ["FAST_OMEGA_RULES", "ci_weights", "covariance_intersection"]
 
@@ -179,8 +181,15 @@ def covariance_intersection(xs: ArrayLike, Ps: ArrayLike,
 
 
 def _covariance_intersection(est, criterion="trace", omega=None):
-    """The ``"ci"`` rule on validated estimates (the core of :func:`covariance_intersection`)."""
+    """The ``"ci"`` rule on validated estimates (the core of :func:`covariance_intersection`).
+
+    Estimates of parts of the state (``fuse(..., H=...)``, validated as
+    :class:`~cifilter._numerics.alignment.PartialEstimates`) take generalised CI
+    (:func:`cifilter.rules._generalised_ci.generalised_ci`, ``docs/methods/partial_state.rst``).
+    """
     kind, W = parse_criterion(criterion, est.dim)
+    if isinstance(est, PartialEstimates):
+        return generalised_ci(est, kind, W, omega, tuple(FAST_OMEGA_RULES))
     info = {"criterion": kind}
     fused = report = None
     if omega is None:
@@ -217,5 +226,11 @@ REGISTRATION: dict[str, Any] = dict(
     reference="Julier & Uhlmann 1997; Niehsen 2002; Franken & Hupper 2005",
     guarantee="bound",
     weights="omega, on the simplex: P^-1 = sum_i omega_i P_i^-1",
+    front_door=("H", "residual", "times"),
 )
-"""The record of the ``"ci"`` rule (registered by :mod:`cifilter.rules`)."""
+"""The record of the ``"ci"`` rule (registered by :mod:`cifilter.rules`).
+
+Its ``front_door`` options: ``H=`` (generalised CI, ``docs/methods/partial_state.rst``),
+``residual=``/``add=`` and ``times=``/``at=``/``motion=`` (``docs/methods/time.rst``): CI's
+bound holds for any correlation, so it holds for retrodicted bounds too.
+"""

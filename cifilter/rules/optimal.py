@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .._kernels import dispatch as kernels
+from .._numerics.alignment import PartialEstimates, unobserved_directions
 from .._numerics.information import weighted_fusion
 from .._numerics.linalg import MAX_CONDITION, cho_inverse, cho_solve, positive_definite, symmetrize
 from .._numerics.validation import (
@@ -19,6 +20,7 @@ from .._numerics.validation import (
     restore_style,
 )
 from ..result import FusionResult
+from ._generalised_ci import generalised_naive
 
 __all__ = ["naive_fusion", "optimal_fusion"]
 
@@ -69,7 +71,13 @@ def naive_fusion(xs: ArrayLike, Ps: ArrayLike) -> FusionResult:
 
 
 def _naive_fusion(est):
-    """The ``"naive"`` rule on validated estimates (the core of :func:`naive_fusion`)."""
+    """The ``"naive"`` rule on validated estimates (the core of :func:`naive_fusion`).
+
+    Estimates of parts ``H_i x`` (``fuse(..., H=...)``) take
+    ``P^-1 = sum_i H_i^T P_i^-1 H_i`` (eq. (H5) of ``docs/methods/partial_state.rst``).
+    """
+    if isinstance(est, PartialEstimates):
+        return generalised_naive(est)
     weights = np.ones(est.batch_shape + (est.count,))
     compiled = kernels.weighted(est, weights, None, None, weighted_fusion)
     if compiled is None:
@@ -328,8 +336,120 @@ def optimal_fusion(xs: ArrayLike, joint: ArrayLike) -> FusionResult:
     return _optimal(x, column, J, count, n)
 
 
+def _blue_partial_cholesky(J, E, n):
+    """Eqs. (18)-(19) with the stacked observation matrix ``E`` (eq. (H6)) through Cholesky
+    factors; None where the joint is (nearly) singular (as :func:`_blue_cholesky`)."""
+    try:
+        L = np.linalg.cholesky(J)
+    except np.linalg.LinAlgError:
+        return None
+    pivots = np.diagonal(L, axis1=-2, axis2=-1)
+    if not np.all(np.isfinite(L)) or np.any(
+        pivots.min(axis=-1) * np.sqrt(MAX_CONDITION) < pivots.max(axis=-1)
+    ):
+        return None
+    A = cho_solve(L, np.broadcast_to(E, L.shape[:-1] + (n,)))  # J^-1 E
+    information = symmetrize(np.swapaxes(A, -1, -2) @ E)  # E^T J^-1 E
+    try:
+        L_information = np.linalg.cholesky(information)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(L_information)):
+        return None
+    P = cho_inverse(L_information)
+    return P @ np.swapaxes(A, -1, -2), P  # K = P E^T J^-1 (n x sum m_i)
+
+
+def _blue_partial_semidefinite(J, E, n, name):
+    """The BLUE with stacked observations ``E`` (sum m_i x n) for a positive semidefinite
+    joint: with ``E = Q_1 R`` and ``Q_2`` the orthogonal complement, every unbiased fusion
+    is ``R^-1 (Q_1^T - G Q_2^T) z``, and ``G = J_ab J_bb^+`` (``J_ab = Q_1^T J Q_2``,
+    ``J_bb = Q_2^T J Q_2``) minimises its error covariance (as :func:`_blue_semidefinite`,
+    whose ``E`` is the stacked identity)."""
+    scale = np.abs(np.diagonal(J, axis1=-2, axis2=-1)).sum(axis=-1)
+    tol = RANK_RTOL * J.shape[-1] * scale
+    if np.any(scale == 0):
+        raise ValueError(f"{name} has a zero diagonal: the estimates have zero error "
+                         "covariance and there is nothing to fuse")
+    eigenvalues = np.linalg.eigvalsh(J)
+    if np.any(eigenvalues[..., 0] < -tol):
+        smallest = eigenvalues[..., 0]
+        index = np.unravel_index(int(np.argmin((smallest / scale).ravel())), smallest.shape)
+        where = f"{name}[{', '.join(map(str, index))}]" if index else name
+        raise ValueError(
+            f"{where} is not positive semidefinite (smallest eigenvalue "
+            f"{float(smallest[index]):.3g}, largest {float(eigenvalues[index][-1]):.3g})"
+        )
+    Q, R = np.linalg.qr(E, mode="complete")
+    Q1, Q2, R = Q[:, :n], Q[:, n:], R[:n]
+    JQ2 = J @ Q2
+    J_ab = Q1.T @ JQ2
+    J_bb = symmetrize(Q2.T @ JQ2)
+    mu, V = np.linalg.eigh(J_bb)
+    keep = mu > tol[..., None]
+    inverse_mu = np.divide(1.0, mu, out=np.zeros_like(mu), where=keep)
+    G = ((J_ab @ V) * inverse_mu[..., None, :]) @ np.swapaxes(V, -1, -2)
+    K = np.linalg.solve(R, Q1.T - G @ Q2.T)  # (..., n, sum m_i), K E = I
+    P = symmetrize(K @ J @ np.swapaxes(K, -1, -2))
+    if not positive_definite(P):
+        raise ValueError(
+            f"{name} is singular in a way that leaves the fusion undefined: an unbiased "
+            "combination of the estimates has (numerically) zero error variance"
+        )
+    return K, P
+
+
+def _optimal_partial(est, joint):
+    """The ``"optimal"`` rule on partial estimates: the BLUE
+    ``x = (E^T J^-1 E)^-1 E^T J^-1 z`` with ``E`` the stacked ``H_i`` and ``J`` the joint
+    covariance of the stacked estimates (sum m_i square; eq. (H6))."""
+    dims = [xi.shape[-1] for xi in est.x]
+    total, n = sum(dims), est.dim
+    J = _check_joint(joint)
+    if J.shape[-2:] != (total, total):
+        raise ValueError(
+            f"joint must have shape (..., {total}, {total}) for estimates of dimensions "
+            f"{dims} (the sum of the estimates' dimensions), got shape {J.shape}"
+        )
+    _batch(est.batch_shape, J.shape[:-2], "the estimates", "joint")
+    J = check_symmetric(J, "joint")
+    offsets = np.cumsum([0] + dims)
+    scale = max(float(np.abs(P).max()) for P in est.P)
+    for i in range(est.count):
+        block = J[..., offsets[i]:offsets[i + 1], offsets[i]:offsets[i + 1]]
+        if not np.allclose(block, est.P[i], rtol=1e-8, atol=1e-12 * scale):
+            raise ValueError("the diagonal blocks of joint must equal the covariances of the "
+                             f"estimates (block {i} differs)")
+    E = np.concatenate([est.observation(i) for i in range(est.count)], axis=0)
+    unobserved = unobserved_directions(E)
+    if unobserved:
+        raise ValueError(
+            "the estimates together do not observe the state: the stacked H_i are rank "
+            f"deficient; unobserved direction(s) of the state: "
+            f"{', '.join(str(v) for v in unobserved)}"
+        )
+    blue = _blue_partial_cholesky(J, E, n)
+    singular = blue is None
+    K, P = _blue_partial_semidefinite(J, E, n, "joint") if singular else blue
+    batch = np.broadcast_shapes(est.batch_shape, J.shape[:-2])
+    z = np.concatenate([np.broadcast_to(xi, batch + xi.shape[-1:]) for xi in est.x], axis=-1)
+    x = (K @ z[..., None])[..., 0]
+    P = np.broadcast_to(P, batch + (n, n)).copy()
+    gains = tuple(np.broadcast_to(K[..., offsets[i]:offsets[i + 1]],
+                                  batch + (n, dims[i])).copy() for i in range(est.count))
+    stacked = np.stack(gains, axis=-3) if all(d == n for d in dims) else None
+    info = {"joint": "singular" if singular else "regular", "gains": gains}
+    return FusionResult(restore_style(x, est.column), P, "optimal", None, stacked, info)
+
+
 def _optimal_fusion(est, joint):
-    """The ``"optimal"`` rule on validated estimates: ``joint`` is checked against them."""
+    """The ``"optimal"`` rule on validated estimates: ``joint`` is checked against them.
+
+    Estimates of parts ``H_i x`` take :func:`_optimal_partial` (``joint`` is then the joint
+    covariance of the stacked partial estimates, sum m_i square).
+    """
+    if isinstance(est, PartialEstimates):
+        return _optimal_partial(est, joint)
     count, n = est.count, est.dim
     J = _check_joint(joint)
     if J.shape[-2:] != (count * n, count * n):
@@ -360,6 +480,7 @@ NAIVE_REGISTRATION: dict[str, Any] = dict(
     reference="the Kalman/information filter update",
     guarantee="none",
     weights="all one: P^-1 = sum_i P_i^-1",
+    front_door=("H", "residual"),
 )
 """The record of the ``"naive"`` rule (registered by :mod:`cifilter.rules`)."""
 
@@ -378,5 +499,6 @@ OPTIMAL_REGISTRATION: dict[str, Any] = dict(
     guarantee="exact",
     truth_options=_optimal_truth_options,
     weights="none (matrix gains from the joint covariance)",
+    front_door=("H", "residual"),
 )
 """The record of the ``"optimal"`` rule (registered by :mod:`cifilter.rules`)."""

@@ -304,5 +304,13 @@ REGISTRATION: dict[str, Any] = dict(
     guarantee="bound",
     truth_options=_pci_truth_options,
     weights="w_i = delta_i / (rho_i + (1 - rho_i) delta_i), eq. (24); they do not sum to one",
+    front_door=("residual",),
 )
-"""The record of the ``"pci"`` rule (registered by :mod:`cifilter.rules`)."""
+"""The record of the ``"pci"`` rule (registered by :mod:`cifilter.rules`).
+
+Its ``front_door`` has ``residual=``/``add=`` (the fused mean is an affine combination of
+the means). Not ``H=``: Lemma 7 and Theorem 5 of Wu, Cai & Fu carry over to estimates of
+``H_i x`` (``docs/methods/partial_state.rst``), but the rule's solvers are written for
+full states. Not ``times=``: a correlation coefficient bound ``rho`` of the estimates does
+not survive the process noise a time shift adds to them.
+"""

@@ -13,6 +13,7 @@ from typing import Any, Optional, Union
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .._numerics.alignment import PartialEstimates
 from .._numerics.criteria import criterion_report, parse_criterion
 from .._numerics.validation import (
     as_covariance_stack,
@@ -74,9 +75,11 @@ def split_covariance_intersection(xs: ArrayLike, Ps_independent: ArrayLike,
     Ps_dependent : sequence of array_like or array_like
         The dependent parts, of the same shapes, symmetric positive semidefinite. Every
         ``P_k_ind + P_k_dep`` must be positive definite.
-    H : array_like, shape (..., m, n), optional
+    H : array_like, shape (..., m, n), or sequence, optional
         The second estimate observes ``H x`` (a partial estimate, for instance a position
         fix of a position-velocity state). Two estimates only. Default: the identity.
+        Also as :func:`cifilter.fuse` takes it, one entry per estimate: ``[None, H]``
+        (the first estimate is of the full state).
     criterion : {"det", "trace"} or array_like, shape (n, n), optional
         What omega minimises: ``det(P)`` (default, as Li, Nashashibi & Yang), ``trace(P)``
         or ``trace(W P)``.
@@ -153,6 +156,7 @@ def split_covariance_intersection(xs: ArrayLike, Ps_independent: ArrayLike,
     >>> bool(np.allclose(r.P, np.linalg.inv(np.linalg.inv(Pa) + np.linalg.inv(Pb))))
     True
     """
+    H = _second_observation(H, xs)
     if H is None:
         P_ind, P_dep = _parts(Ps_independent, Ps_dependent, "Ps_independent", "Ps_dependent")
         est = as_estimates(xs, P_ind + P_dep, names=("xs", "Ps_independent + Ps_dependent"))
@@ -160,6 +164,22 @@ def split_covariance_intersection(xs: ArrayLike, Ps_independent: ArrayLike,
         P_dep = np.broadcast_to(P_dep, est.P.shape)
         return _split_ci(est, P_ind, P_dep, criterion)
     return _split_ci_partial(xs, Ps_independent, Ps_dependent, H, criterion)
+
+
+def _second_observation(H, xs):
+    """Split CI's ``H``: the second estimate's matrix, given alone or as the front door's
+    per-estimate sequence ``[None, H_2]``."""
+    if not (isinstance(H, (list, tuple)) and len(H) >= 1
+            and any(entry is None for entry in H)):
+        return H
+    count = len(xs) if isinstance(xs, (list, tuple)) else None
+    if len(H) != 2 or H[0] is not None or (count is not None and count != 2):
+        raise ValueError(
+            "split CI fuses a partial estimate into an estimate of the full state: give H as "
+            "the second estimate's matrix or as [None, H_2] (two estimates, the first of the "
+            f"full state); got {len(H)} entries"
+        )
+    return H[1]
 
 
 def _flatten(array, tail):
@@ -226,34 +246,80 @@ def _split_ci_partial(xs, Ps_independent, Ps_dependent, H, criterion):
     est1, est2 = first[0], second[0]
     n, m = est1.dim, est2.dim
     H = as_matrix(H, "H", (m, n))
+    return _partial_pair(est1.x[..., 0, :], est2.x[..., 0, :], est1.batch_shape,
+                         est2.batch_shape, ((first[1], first[2]), (second[1], second[2])), H,
+                         criterion, est1.column)
+
+
+def _partial_pair(x1, x2, batch1, batch2, parts, H, criterion, column, omega=None):
+    """Split CI of a full-state estimate ``x1`` (..., n) and an estimate ``x2`` (..., m) of
+    ``H x``, with their parts ``((P1_ind, P1_dep), (P2_ind, P2_dep))``."""
+    (P1_ind, P1_dep), (P2_ind, P2_dep) = parts
+    n, m = x1.shape[-1], x2.shape[-1]
     kind, W = parse_criterion(criterion, n)
-    batch = np.broadcast_shapes(est1.batch_shape, est2.batch_shape, H.shape[:-2],
-                                first[1].shape[:-2], second[1].shape[:-2])
+    batch = np.broadcast_shapes(batch1, batch2, H.shape[:-2], P1_ind.shape[:-2],
+                                P2_ind.shape[:-2])
     size = int(np.prod(batch, dtype=int))
 
     def flat(array, tail):
         return np.broadcast_to(array, batch + array.shape[array.ndim - tail:]).reshape(
             (size,) + array.shape[array.ndim - tail:])
 
-    parts = ((flat(first[1], 2), flat(first[2], 2)), (flat(second[1], 2), flat(second[2], 2)))
+    flat_parts = ((flat(P1_ind, 2), flat(P1_dep, 2)), (flat(P2_ind, 2), flat(P2_dep, 2)))
     Wf = None if W is None else flat(W, 2)
-    x, P, Pi, Pd, K1, K2, w, info = split_pair(flat(est1.x[..., 0, :], 1),
-                                               flat(est2.x[..., 0, :], 1), parts,
-                                               flat(H, 2), kind, Wf)
+    if omega is not None:
+        omega = np.broadcast_to(omega, batch).reshape(size)
+    x, P, Pi, Pd, K1, K2, w, info = split_pair(flat(x1, 1), flat(x2, 1), flat_parts,
+                                               flat(H, 2), kind, Wf, omega)
     P = P.reshape(batch + (n, n))
-    out = {"criterion": kind, "rule": "optimal",
-           "iterations": info["iterations"].reshape(batch),
-           "gap": info["gap"].reshape(batch), "converged": info["converged"].reshape(batch),
+    out = {"criterion": kind, "rule": info["rule"],
            "P_independent": Pi.reshape(batch + (n, n)),
            "P_dependent": Pd.reshape(batch + (n, n)),
            "gains": (K1.reshape(batch + (n, n)), K2.reshape(batch + (n, m)))}
+    if omega is None:
+        out.update(iterations=info["iterations"].reshape(batch),
+                   gap=info["gap"].reshape(batch), converged=info["converged"].reshape(batch))
     out.update(criterion_report(P, kind, W))
     weights = np.stack([w, 1.0 - w], axis=-1).reshape(batch + (2,))
     gains = None
     if m == n:
         gains = np.stack([K1, K2], axis=1).reshape(batch + (2, n, n))
-    return FusionResult(restore_style(x.reshape(batch + (n,)), est1.column), P, "split-ci",
+    return FusionResult(restore_style(x.reshape(batch + (n,)), column), P, "split-ci",
                         None, gains, out, weights=weights)
+
+
+def _partial_independent_parts(est, independent):
+    """``independent=`` for partial estimates: one PSD part per estimate, (n, n) and
+    (m, m), with ``P_i - independent_i`` positive semidefinite."""
+    if independent is None:
+        return [np.zeros(P.shape) for P in est.P]
+    if not isinstance(independent, (list, tuple)) or len(independent) != est.count:
+        raise ValueError(
+            f"with H, independent must be a sequence of {est.count} parts, one per estimate "
+            "(of each estimate's own dimension)"
+        )
+    parts = []
+    for i, (part, P) in enumerate(zip(independent, est.P)):
+        m = P.shape[-1]
+        part = check_psd(part, m, f"independent[{i}]")
+        check_psd(P - part, m, f"P - independent[{i}] (the dependent part of estimate {i})")
+        parts.append(part)
+    return parts
+
+
+def _split_ci_partial_core(est, independent, criterion, omega):
+    """``fuse(..., method="split-ci", H=[None, H_2])``: the partial form of split CI."""
+    if est.count != 2 or est.H[0] is not None:
+        raise ValueError(
+            "split CI with H fuses two estimates, the first of the full state: "
+            "H=[None, H_2]"
+        )
+    P_ind = _partial_independent_parts(est, independent)
+    if omega is not None:
+        omega = check_weights(omega, 2, batch_shape=est.batch_shape)[..., 0]
+    parts = tuple((P_ind[i], est.P[i] - P_ind[i]) for i in range(2))
+    return _partial_pair(est.x[0], est.x[1], est.batch_shape, est.batch_shape, parts,
+                         est.H[1], criterion, est.column, omega)
 
 
 def _independent_parts(est, independent, omega_check=False):
@@ -284,8 +350,11 @@ def _split_ci_core(est, independent=None, criterion="det", omega=None):
 
     ``independent`` gives each estimate's independent part (the dependent part is
     ``P - independent``); without it every part is dependent and the rule is CI with the
-    determinant criterion. ``omega`` (two estimates) fixes the weight.
+    determinant criterion. ``omega`` (two estimates) fixes the weight. Partial estimates
+    (``fuse(..., H=[None, H_2])``) take the partial form of :func:`split_pair`.
     """
+    if isinstance(est, PartialEstimates):
+        return _split_ci_partial_core(est, independent, criterion, omega)
     P_ind = _independent_parts(est, independent)
     if omega is not None:
         if est.count != 2:
@@ -303,6 +372,7 @@ REGISTRATION: dict[str, Any] = dict(
     guarantee="bound",
     weights="(omega, 1 - omega): P_k(omega) = P_k_dep / omega_k + P_k_ind (two estimates); "
             "None for N > 2 (sequential; info['omegas'])",
+    front_door=("H", "residual"),
 )
 """The record of the ``"split-ci"`` rule (registered by :mod:`cifilter.rules`).
 

@@ -1,0 +1,509 @@
+"""Bringing estimates to one state space and one time (private).
+
+The front door (:func:`cifilter.fuse`) uses these helpers for its options ``H=``,
+``residual=``/``add=`` and ``times=``/``at=``/``motion=`` before a rule runs:
+
+* **Partial estimates.** Estimate ``i`` estimates ``H_i x`` of the common state ``x``
+  (``H_i`` of shape (m_i, n)); :class:`PartialEstimates` holds such estimates validated,
+  each with its own dimension m_i, and :func:`as_partial_estimates` builds it.
+  :func:`unobserved_directions` names the state directions that no estimate observes.
+* **Time.** Estimate ``i`` describes the state at ``times[i]``; :func:`align_in_time`
+  brings it to ``at`` with ``(F, Q) = motion(dt)``: older estimates are predicted
+  (``F x``, ``F P F^T + Q``, exact), newer ones retrodicted with the bound
+  ``F^-1 (P / alpha + Q / (1 - alpha)) F^-T`` (:func:`retrodicted`; derivation and proof in
+  ``docs/methods/time.rst``).
+* **Residuals.** :func:`residuals_to_reference` and :func:`added_to_reference` apply a
+  user's ``residual(a, b)`` and ``add(x, dx)`` (angles and other non-Euclidean states;
+  ``docs/methods/partial_state.rst``).
+
+Everything returns new arrays; inputs (and the arrays handed to user callables, which
+get copies) are never modified.
+"""
+
+import math
+import numbers
+from typing import Any, Callable, NamedTuple, Optional
+
+import numpy as np
+from scipy.linalg import lapack
+
+from .linalg import MAX_CONDITION, cholesky_single, ill_conditioned, symmetrize
+from .validation import PSD_RTOL, SYMMETRY_RTOL, as_estimates, as_float_array, check_psd
+
+__all__ = [
+    "PartialEstimates",
+    "added_to_reference",
+    "align_in_time",
+    "as_partial_estimates",
+    "check_observation_matrices",
+    "check_times",
+    "motion_matrices",
+    "predicted",
+    "residuals_to_reference",
+    "retrodicted",
+    "retrodiction_alpha",
+    "unobserved_directions",
+]
+
+
+# --------------------------------------------------------------------- partial estimates
+class PartialEstimates(NamedTuple):
+    """Validated estimates of parts ``H_i x`` of one state ``x`` (each of its own dimension).
+
+    The counterpart of :class:`cifilter._numerics.validation.Estimates` for ``H=``: the
+    estimates cannot be stacked (their dimensions m_i differ), so each field is a tuple of
+    N arrays with one common batch shape.
+    """
+
+    x: tuple  # N arrays (..., m_i)
+    P: tuple  # N arrays (..., m_i, m_i), symmetric positive definite
+    L: tuple  # N arrays (..., m_i, m_i), their lower Cholesky factors
+    H: tuple  # N entries: None (the full state, m_i = n) or an (m_i, n) float array
+    dim: int  # n, the dimension of the common state
+    column: bool  # the first input was a column vector
+
+    @property
+    def count(self):
+        return len(self.x)
+
+    @property
+    def batch_shape(self):
+        return self.x[0].shape[:-1]
+
+    @property
+    def full(self):
+        """Indices of the estimates of the full state (``H_i`` None)."""
+        return tuple(i for i, H in enumerate(self.H) if H is None)
+
+    def observation(self, i):
+        """``H_i`` as a matrix (the identity for a full-state estimate)."""
+        return np.eye(self.dim) if self.H[i] is None else self.H[i]
+
+
+def check_observation_matrices(H: Any, count: int) -> Optional[tuple]:
+    """``H=`` of the front door: one entry per estimate, None or an (m_i, n) matrix.
+
+    Returns a tuple of None and finite float matrices (copies), or None when ``H`` is
+    None or every entry is None (then the estimates are ordinary full-state ones). Shapes
+    against the estimates are checked by :func:`as_partial_estimates`.
+    """
+    if H is None:
+        return None
+    if isinstance(H, np.ndarray) and H.ndim != 3 and H.dtype != object:
+        raise ValueError(
+            f"H must be a sequence of {count} entries, one per estimate (None for an "
+            f"estimate of the full state, or an (m_i, n) matrix), got an array of shape "
+            f"{H.shape}"
+        )
+    if isinstance(H, (str, bytes)) or not hasattr(H, "__len__"):
+        raise TypeError(
+            f"H must be a sequence of {count} entries (None or an (m_i, n) matrix), got "
+            f"{type(H).__name__}"
+        )
+    if len(H) != count:
+        raise ValueError(
+            f"H has {len(H)} entries but there are {count} estimates; give one per "
+            "estimate (None for an estimate of the full state)"
+        )
+    out: list[Any] = []
+    for i, entry in enumerate(H):
+        if entry is None:
+            out.append(None)
+            continue
+        matrix = as_float_array(entry, f"H[{i}]")
+        if matrix.ndim != 2 or 0 in matrix.shape:
+            raise ValueError(
+                f"H[{i}] must be None or a matrix of shape (m_{i}, n), got shape {matrix.shape}"
+            )
+        if not np.all(np.isfinite(matrix)):
+            raise ValueError(f"H[{i}] contains non-finite values (NaN or inf)")
+        out.append(matrix)
+    if all(entry is None for entry in out):
+        return None
+    return tuple(out)
+
+
+class _Single(NamedTuple):
+    """One validated estimate (the fields :func:`as_partial_estimates` uses)."""
+
+    x: np.ndarray  # (..., 1, m)
+    P: np.ndarray  # (..., 1, m, m)
+    L: np.ndarray  # (..., 1, m, m)
+    column: bool
+
+    @property
+    def dim(self):
+        return self.x.shape[-1]
+
+    @property
+    def batch_shape(self):
+        return self.x.shape[:-2]
+
+
+def _usual_single(x, P):
+    """One unbatched float64 estimate, finite, symmetric and factorisable, checked cheaply
+    (the filters' single call); None sends it the long way, whose messages explain."""
+    if not (isinstance(x, np.ndarray) and isinstance(P, np.ndarray)
+            and x.dtype == np.float64 and P.dtype == np.float64 and P.ndim == 2):
+        return None
+    m = P.shape[0]
+    if m == 0 or P.shape != (m, m) or x.shape not in ((m,), (m, 1)):
+        return None
+    if not math.isfinite(float(P.sum()) + float(x.sum())):
+        return None
+    asymmetry = float(np.abs(P - P.T).max())
+    if asymmetry > SYMMETRY_RTOL * float(np.abs(P.diagonal()).max()):
+        return None
+    P = 0.5 * (P + P.T)
+    L = cholesky_single(P)
+    if L is None:
+        return None
+    return _Single(x.reshape(1, m).copy(), P[None], L[None], x.ndim == 2)
+
+
+def as_partial_estimates(pairs: list, H: tuple, labels: Optional[tuple] = None
+                         ) -> PartialEstimates:
+    """Validate N ``(x, P)`` pairs, estimate ``i`` of ``H_i x``, into :class:`PartialEstimates`.
+
+    Each estimate is validated on its own (shape, finiteness, symmetry, positive
+    definiteness, Cholesky factor); ``H_i`` must have as many rows as estimate ``i`` has
+    dimensions and as many columns as the state (the dimension of the full-state estimates,
+    or of ``H``'s first matrix when there is none). Batch axes broadcast.
+    """
+    count = len(pairs)
+    validated = []
+    for i, (x, P) in enumerate(pairs):
+        label = f"estimates[{i}]" if labels is None else labels[i]
+        usual = _usual_single(x, P)
+        validated.append(usual if usual is not None else
+                         as_estimates([x], [P], min_count=1, names=("x", "P"),
+                                      labels=(label,)))
+    where = [f"estimates[{i}]" if labels is None else labels[i] for i in range(count)]
+    dims = [est.dim for est in validated]
+    full = [i for i in range(count) if H[i] is None]
+    if full:
+        n, source = dims[full[0]], f"{where[full[0]]} estimates the full state"
+    else:
+        first = next(i for i in range(count) if H[i] is not None)
+        n, source = H[first].shape[1], f"H[{first}] has {H[first].shape[1]} columns"
+    for i in range(count):
+        if H[i] is None:
+            if dims[i] != n:
+                raise ValueError(
+                    f"{where[i]}'s P is {dims[i]}x{dims[i]}, but the state has dimension {n} "
+                    f"({source}); an estimate of part of the state needs its H[{i}]"
+                )
+            continue
+        rows, columns = H[i].shape
+        if rows != dims[i]:
+            raise ValueError(
+                f"H[{i}] has shape {H[i].shape}, but {where[i]}'s P is {dims[i]}x{dims[i]}: "
+                f"estimate {i} estimates H[{i}] x, so H[{i}] needs {dims[i]} rows"
+            )
+        if columns != n:
+            raise ValueError(
+                f"H[{i}] has shape {H[i].shape}, but the state has dimension {n} ({source}); "
+                f"H[{i}] needs {n} columns"
+            )
+    try:
+        batch = np.broadcast_shapes(*(est.batch_shape for est in validated))
+    except ValueError:
+        shapes = ", ".join(str(est.batch_shape) for est in validated)
+        raise ValueError(f"the estimates' batch shapes {shapes} do not broadcast") from None
+
+    def broadcast(array, tail):
+        shape = batch + array.shape[array.ndim - tail:]
+        return array if array.shape == shape else np.array(np.broadcast_to(array, shape))
+
+    xs = tuple(broadcast(est.x[..., 0, :], 1) for est in validated)
+    Ps = tuple(broadcast(est.P[..., 0, :, :], 2) for est in validated)
+    Ls = tuple(broadcast(est.L[..., 0, :, :], 2) for est in validated)
+    return PartialEstimates(xs, Ps, Ls, tuple(H), n, validated[0].column)
+
+
+def unobserved_directions(G: np.ndarray, n_digits: int = 3) -> list:
+    """A basis of the state directions that the stacked square roots ``G`` do not observe.
+
+    ``G`` (M, n) stacks ``L_i^-1 H_i`` of every estimate (one problem): the fused
+    information ``G^T G = sum_i H_i^T P_i^-1 H_i`` is numerically singular along the right
+    singular vectors whose squared singular value is below ``n eps`` times the largest
+    (the threshold of the fused information's Cholesky test). Returned rounded to
+    ``n_digits`` as lists (for messages), each with its largest entry positive.
+    """
+    n = G.shape[-1]
+    _, s, Vt = np.linalg.svd(G, full_matrices=True)
+    s = np.concatenate([s, np.zeros(n - s.size)]) if s.size < n else s
+    top = s.max() if s.size else 0.0
+    null = [k for k in range(n) if not s[k] ** 2 > n * np.finfo(float).eps * top**2]
+    out = []
+    for k in null:
+        v = Vt[k]
+        v = v * np.sign(v[np.argmax(np.abs(v))])
+        out.append([round(float(a), n_digits) + 0.0 for a in v])
+    return out
+
+
+# ------------------------------------------------------------------------------------ time
+def check_times(times: Any, count: int, at: Any = None) -> tuple:
+    """``times=`` (N finite reals) and ``at=`` (a finite real; default ``max(times)``).
+
+    Returns ``(times, at)`` as a tuple of floats and a float.
+    """
+    if isinstance(times, (str, bytes)) or not hasattr(times, "__len__"):
+        raise TypeError(
+            f"times must be a sequence of {count} numbers (the time of each estimate), got "
+            f"{type(times).__name__}"
+        )
+    if len(times) != count:
+        raise ValueError(f"times has {len(times)} entries but there are {count} estimates")
+    out = []
+    for i, t in enumerate(times):
+        out.append(_finite_real(t, f"times[{i}]"))
+    at = max(out) if at is None else _finite_real(at, "at")
+    return tuple(out), at
+
+
+def _finite_real(value, name):
+    if type(value) is float or type(value) is int:  # the common case, without the ABC test
+        value = float(value)
+        if math.isfinite(value):
+            return value
+    if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
+        value = value[()]
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    return value
+
+
+def motion_matrices(motion: Callable[..., Any], dt: float, n: int) -> tuple:
+    """``(F, Q) = motion(dt)``, checked: F (n, n) finite, Q (n, n) symmetric PSD (copies)."""
+    try:
+        returned = motion(dt)
+    except (TypeError, ValueError) as exc:
+        raise type(exc)(f"motion({dt!r}) failed: {exc}") from exc
+    if (type(returned) is tuple and len(returned) == 2 and _plain(returned[0], n)
+            and _plain(returned[1], n) and math.isfinite(float(returned[0].sum()))):
+        # (float64 n x n matrices, F finite: the checks below on copies, without conversion)
+        Q = _psd(returned[1].copy(), n, f"Q of motion({dt!r})")
+        return returned[0].copy(), Q
+    call = f"motion({dt!r})"
+    if not (isinstance(returned, (tuple, list)) and len(returned) == 2):
+        raise TypeError(
+            f"motion must return a pair (F, Q) of n x n matrices; {call} returned "
+            f"{type(returned).__name__}"
+        )
+    F, Q = returned
+    F = F.copy() if _plain(F, n) else as_float_array(F, f"F of {call}")
+    if F.shape != (n, n):
+        raise ValueError(f"{call} returned F of shape {F.shape}; the state needs ({n}, {n})")
+    if not math.isfinite(float(F.sum())) and not np.all(np.isfinite(F)):
+        raise ValueError(f"{call} returned F with non-finite values (NaN or inf)")
+    Q = Q.copy() if _plain(Q, n) else as_float_array(Q, f"Q of {call}")
+    if Q.shape != (n, n):
+        raise ValueError(f"{call} returned Q of shape {Q.shape}; the state needs ({n}, {n})")
+    return F, _psd(Q, n, f"Q of {call}")
+
+
+def _plain(A, n):
+    """A float64 (n, n) array (copied as it is; anything else is converted and checked)."""
+    return isinstance(A, np.ndarray) and A.dtype == np.float64 and A.shape == (n, n)
+
+
+_IDENTITIES: dict = {}
+
+
+def _psd(Q, n, name):
+    """:func:`cifilter._numerics.validation.check_psd` for one matrix, its success path with
+    LAPACK called directly: symmetric (exactly, or within ``SYMMETRY_RTOL``) and a Cholesky
+    factor of ``Q + PSD_RTOL s I``. ``s`` is the largest diagonal entry, which is
+    ``max |Q_ij|`` for a positive semidefinite ``Q`` and smaller otherwise, so this accepts
+    no matrix that the general check rejects; the general check decides (and explains)
+    everything else."""
+    if Q.ndim == 2 and math.isfinite(float(Q.sum())):
+        scale = float(Q.diagonal().max())
+        if not (Q == Q.T).all():
+            if not float(np.abs(Q - Q.T).max()) <= SYMMETRY_RTOL * scale:
+                return check_psd(Q, n, name)
+            Q = 0.5 * (Q + Q.T)
+        eye = _IDENTITIES.get(n)
+        if eye is None:
+            eye = _IDENTITIES[n] = np.eye(n)
+        if scale == 0.0 and not Q.any():
+            return Q
+        if scale > 0.0 and cholesky_single(Q + (PSD_RTOL * scale) * eye) is not None:
+            return Q
+    return check_psd(Q, n, name)
+
+
+def predicted(x: np.ndarray, L: np.ndarray, F: np.ndarray, Q: np.ndarray) -> tuple:
+    """An older estimate brought forward: ``F x`` and ``(F L)(F L)^T + Q`` (exact).
+
+    ``x`` (..., n), ``L`` (..., n, n) the Cholesky factor of its covariance. The process
+    noise between the two times is independent of the estimate's error, so this is the
+    error covariance of ``F x``, not a bound (``docs/methods/time.rst``).
+    """
+    FL = F @ L
+    P = FL @ FL.swapaxes(-1, -2) + Q
+    return x @ F.T, 0.5 * (P + P.swapaxes(-1, -2))
+
+
+def retrodiction_alpha(a: np.ndarray, b: float) -> np.ndarray:
+    """``alpha = sqrt(a) / (sqrt(a) + sqrt(b))``, the trace-minimising split (1 when b = 0)."""
+    root_a, root_b = np.sqrt(a), math.sqrt(b)
+    if root_b == 0.0:
+        return np.ones_like(root_a)
+    return root_a / (root_a + root_b)
+
+
+def _inverse_by_lu(F, name):
+    """``F^-1`` from its LU factorisation (LAPACK ``getrf``, ``getri``), refused where ``F``
+    is singular or its estimated 1-norm condition number (``gecon``) exceeds 1e12."""
+    lu, pivots, info = lapack.dgetrf(F)
+    what = ("is singular or numerically singular, so a newer estimate cannot be brought "
+            "back in time (retrodiction needs F^-1)")
+    if info > 0:
+        raise ill_conditioned(name, np.inf, what=what)
+    reciprocal, _ = lapack.dgecon(lu, float(np.abs(F).sum(axis=0).max()), norm="1")
+    if not reciprocal * MAX_CONDITION >= 1.0:
+        raise ill_conditioned(name, np.inf if reciprocal == 0 else 1.0 / reciprocal,
+                              what=what)
+    F_inv, _ = lapack.dgetri(lu, pivots)
+    return F_inv
+
+
+def retrodicted(x: np.ndarray, L: np.ndarray, F: np.ndarray, Q: np.ndarray,
+                name: str = "F") -> tuple:
+    """A newer estimate brought back: ``F^-1 x`` and the bound
+    ``F^-1 (P / alpha + Q / (1 - alpha)) F^-T`` (eqs. (T5)-(T6) of ``docs/methods/time.rst``,
+    a bound by (T3)).
+
+    The estimate's error and the process noise in between are correlated in an unknown
+    way, so ``F^-1 (P + Q) F^-T`` is not a bound; for every ``alpha`` in (0, 1) this is,
+    and it is tight direction by direction. ``alpha`` minimises the trace:
+    ``sqrt(a) / (sqrt(a) + sqrt(b))`` with ``a = tr(F^-1 P F^-T)``, ``b = tr(F^-1 Q F^-T)``
+    (1 when ``Q`` is zero: then ``F^-1 P F^-T`` is exact). ``F^-1`` comes from an LU
+    factorisation; a singular or numerically singular ``F`` (estimated condition number
+    above 1e12) raises
+    :class:`~cifilter._numerics.linalg.IllConditionedError`. Returns ``(x, P, alpha)``.
+    """
+    F_inv = _inverse_by_lu(F, name)
+    A = F_inv @ L  # F^-1 L: F^-1 P F^-T = A A^T
+    Q_back = F_inv @ Q @ F_inv.T  # (the sum below is symmetrised)
+    b = float(Q_back.trace())
+    if A.ndim == 2:  # one estimate: Python floats
+        a = float(np.square(A).sum())
+        share = 1.0 if b == 0.0 else math.sqrt(a) / (math.sqrt(a) + math.sqrt(b))
+        P = (A @ A.T) / share
+        if b > 0.0:
+            P += Q_back / (1.0 - share)
+        return x @ F_inv.T, 0.5 * (P + P.T), share
+    alpha = retrodiction_alpha(np.square(A).sum(axis=(-2, -1)), b)
+    P = A @ A.swapaxes(-1, -2) / alpha[..., None, None]
+    if b > 0.0:
+        P = P + Q_back / (1.0 - alpha)[..., None, None]
+    return x @ F_inv.T, symmetrize(P), alpha
+
+
+def align_in_time(x: list, L: list, movable: list, times: tuple, at: float,
+                  motion: Optional[Callable[..., Any]], n: int, where: list) -> tuple:
+    """Bring the estimates ``movable`` from ``times[i]`` to ``at`` (the rest must be at ``at``).
+
+    ``x`` and ``L`` are lists of the estimates' means (..., n) and Cholesky factors; the
+    others' entries are passed through. Returns ``(x, P, alpha, changed)``: new lists (P
+    None where unchanged), ``alpha`` per estimate (None unless retrodicted) and the indices
+    of the estimates that moved.
+    """
+    x, P = list(x), [None] * len(x)
+    alpha: list = [None] * len(x)
+    changed = []
+    for i, t in enumerate(times):
+        if t == at:
+            continue
+        if not movable[i]:
+            raise ValueError(
+                f"{where[i]} is at time {t:g} and estimates part of the state (H[{i}] is "
+                f"given); only estimates of the full state can be brought to at={at:g}"
+            )
+        if motion is None:
+            raise ValueError(
+                f"{where[i]} is at time {t:g}, not at={at:g}: give motion= (dt -> (F, Q)) "
+                "to bring it there"
+            )
+        if not callable(motion):
+            raise TypeError(f"motion must be callable (dt -> (F, Q)), got "
+                            f"{type(motion).__name__}")
+        dt = abs(at - t)
+        F, Q = motion_matrices(motion, dt, n)
+        if t < at:
+            x[i], P[i] = predicted(x[i], L[i], F, Q)
+        else:
+            x[i], P[i], alpha[i] = retrodicted(
+                x[i], L[i], F, Q, name=f"F of motion({dt!r}) (for {where[i]}, newer than at)")
+        changed.append(i)
+    return x, P, alpha, changed
+
+
+# ------------------------------------------------------------------------------- residuals
+def _call_vector(function, name, args, n):
+    """``function(*args)`` on 1-D float copies, checked to give n finite numbers."""
+    try:
+        value = function(*[np.array(a, dtype=float) for a in args])
+    except (TypeError, ValueError, IndexError) as exc:
+        raise type(exc)(f"{name} failed: {exc}") from exc
+    if (type(value) is np.ndarray and value.dtype == np.float64 and value.shape == (n,)
+            and math.isfinite(float(value.sum()))):
+        return value.copy()  # the usual answer (copied: the function may keep it)
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must return {n} numbers, got {type(value).__name__}") from None
+    if array.size != n or array.ndim > 2 or (array.ndim == 2 and 1 not in array.shape):
+        raise ValueError(f"{name} must return {n} numbers (shape ({n},)), got shape "
+                         f"{array.shape}")
+    array = array.reshape(n)
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} returned non-finite values (NaN or inf)")
+    return array
+
+
+def residuals_to_reference(x: list, H: tuple, residual: Callable[..., Any]) -> list:
+    """Means relative to the reference (the first estimate, of the full state).
+
+    Full-state estimate ``i``: ``residual(x_i, x_ref)``, called per batch item on 1-D
+    copies; an estimate of ``H_i x``: ``x_i - H_i x_ref`` (its residual is plain
+    subtraction in its own space). The reference gets zeros. Returns new arrays.
+    """
+    reference = x[0]
+    n = reference.shape[-1]
+    batch = reference.shape[:-1]
+    out = [np.zeros(reference.shape)]
+    for i in range(1, len(x)):
+        if H[i] is not None:
+            out.append(x[i] - reference @ H[i].T)
+        elif not batch:
+            out.append(_call_vector(residual, "residual", (x[i], reference), n))
+        else:
+            d = np.empty(batch + (n,))
+            for index in np.ndindex(batch):
+                d[index] = _call_vector(residual, "residual", (x[i][index], reference[index]),
+                                        n)
+            out.append(d)
+    return out
+
+
+def added_to_reference(reference: np.ndarray, d: np.ndarray,
+                       add: Callable[..., Any]) -> np.ndarray:
+    """``add(x_ref, d)`` per batch item on 1-D copies (a new array (..., n))."""
+    n = reference.shape[-1]
+    if reference.ndim == 1 and d.ndim == 1:
+        return _call_vector(add, "add", (reference, d), n)
+    batch = np.broadcast_shapes(reference.shape[:-1], d.shape[:-1])
+    reference = np.broadcast_to(reference, batch + (n,))
+    d = np.broadcast_to(d, batch + (n,))
+    out = np.empty(batch + (n,))
+    for index in np.ndindex(batch):
+        out[index] = _call_vector(add, "add", (reference[index], d[index]), n)
+    return out

@@ -1,0 +1,446 @@
+"""Generalised Covariance Intersection: estimates of parts ``H_i x`` of one state ``x``.
+
+With estimate ``i`` of ``H_i x`` (``H_i`` of shape (m_i, n), the identity for a full-state
+estimate) and weights ``w`` on the simplex (eqs. (H1)-(H3) of
+``docs/methods/partial_state.rst``):
+
+    P^-1 = sum_i w_i H_i^T P_i^-1 H_i,   K_i = w_i P H_i^T P_i^-1,   x = sum_i K_i x_i,
+
+and ``P = sum_i K_i P_i K_i^T / w_i`` is the bound of the returned gains for every
+cross-covariance (eq. (H4)). The information comes from square roots: with
+``P_i = L_i L_i^T`` and ``G_i = L_i^-1 H_i`` (m_i x n), ``H_i^T P_i^-1 H_i = G_i^T G_i``;
+no ``P_i^-1`` is formed and no condition number is squared. ``G_i`` padded with zero rows
+to n x n (or, for m_i > n, replaced by the triangular factor of its QR decomposition) has
+the same Gram matrix, so the weighted information fusion of
+:mod:`cifilter._numerics.information` (which uses its inverse Cholesky factors only through
+``L_inv^T L_inv`` and products with them) and the simplex solver of
+:mod:`cifilter._numerics.optimize` serve unchanged; weights at which the fused information
+is singular have an infinite criterion, which the solver's line searches reject.
+
+The naive rule with ``H`` is the same fusion with all weights one (then ``P`` is the error
+covariance of the gains for independent errors).
+"""
+
+from typing import Any, NamedTuple, Optional
+
+import numpy as np
+from scipy.linalg import lapack
+
+from .._numerics.alignment import unobserved_directions
+from .._numerics.criteria import (
+    GAP_TOL,
+    certified_gap,
+    criterion_gradient,
+    criterion_of_factor,
+    criterion_report,
+)
+from .._numerics.information import (
+    information_factors,
+    lower_inverse_stack,
+    single_diagonalisation_trusted,
+    trace_curvature,
+)
+from .._numerics.linalg import ill_conditioned, lower_inverse_single, symmetrize
+from .._numerics.optimize import interval_gap, minimize_convex_scalar, minimize_convex_simplex
+from .._numerics.validation import check_weights, restore_style
+from ..result import FusionResult
+
+__all__ = [
+    "SquareRoots",
+    "check_observable",
+    "generalised_assembly",
+    "generalised_ci",
+    "generalised_naive",
+    "generalised_weights",
+    "square_roots",
+]
+
+
+class SquareRoots(NamedTuple):
+    """The information square roots of partial estimates (one batch)."""
+
+    G: np.ndarray  # (..., N, n, n): Gram matrix G_i^T G_i = H_i^T P_i^-1 H_i
+    L_inv: tuple  # N arrays (..., m_i, m_i): inverses of the Cholesky factors
+    rotation: tuple  # N entries: None, or Q_i (..., m_i, n) with L_i^-1 H_i = Q_i G_i (m_i > n)
+
+
+def square_roots(est: Any) -> SquareRoots:
+    """``G_i`` for every estimate (see the module docstring), stacked (..., N, n, n)."""
+    n = est.dim
+    stacked: list[Any] = []
+    L_invs: list[Any] = []
+    rotations: list[Any] = []
+    for i in range(est.count):
+        L_inv = lower_inverse_stack(est.L[i])
+        L_invs.append(L_inv)
+        H = est.H[i]
+        if H is None:
+            stacked.append(L_inv)
+            rotations.append(None)
+            continue
+        G = L_inv @ H  # (..., m_i, n)
+        m = G.shape[-2]
+        if m > n:
+            Q, R = np.linalg.qr(G)  # G = Q R, R (..., n, n): R^T R = G^T G
+            stacked.append(R)
+            rotations.append(Q)
+            continue
+        if m < n:
+            G = np.concatenate([G, np.zeros(G.shape[:-2] + (n - m, n))], axis=-2)
+        stacked.append(G)
+        rotations.append(None)
+    return SquareRoots(np.stack(stacked, axis=-3), tuple(L_invs), tuple(rotations))
+
+
+def _state_gains(est, roots, factors):
+    """``P H_i^T L_i^-T`` (..., n, m_i) for every estimate, from ``B_i = P G~_i^T``."""
+    out = []
+    for i in range(est.count):
+        B = factors.B[..., i, :, :]
+        m = est.x[i].shape[-1]
+        if roots.rotation[i] is not None:
+            out.append(B @ roots.rotation[i].swapaxes(-1, -2))
+        else:
+            out.append(B[..., :, :m])
+    return out
+
+
+def generalised_assembly(est, roots, weights, factors):
+    """The fused mean, the bound of the gains and the gains at ``weights`` (batched).
+
+    ``K_i = w_i (P H_i^T L_i^-T) L_i^-1``; where some estimates are of the full state, the
+    one of largest weight gets ``I - sum_{j != i} K_j H_j`` instead, so that
+    ``sum_i K_i H_i = I`` holds to rounding (the fused mean is unbiased and its error is
+    ``sum_i K_i e_i``), and ``x = x_ref + sum_{j != ref} K_j (x_j - H_j x_ref)``.
+    ``P = sum_i (K_i L_i)(K_i L_i)^T / w_i`` over the positive weights: the bound of
+    exactly these gains (eq. (H4)). Returns ``(x, P, gains)`` with ``gains`` a tuple of
+    (..., n, m_i) arrays.
+    """
+    n, count = est.dim, est.count
+    batch = est.batch_shape
+    gains = []
+    for i, PG in enumerate(_state_gains(est, roots, factors)):
+        K = weights[..., i, None, None] * (PG @ roots.L_inv[i])
+        gains.append(K)
+    full = est.full
+    if full:
+        candidates = np.array(full)
+        reference = candidates[np.argmax(weights[..., candidates], axis=-1)]  # (...)
+        others = np.zeros(batch + (n, n))
+        x_ref = np.zeros(batch + (n,))
+        for i in range(count):
+            mine = reference == i
+            KH = gains[i] if est.H[i] is None else gains[i] @ est.H[i]
+            others = others + np.where(mine[..., None, None], 0.0, KH)
+            if est.H[i] is None:
+                x_ref = np.where(mine[..., None], est.x[i], x_ref)
+        remainder = np.eye(n) - others
+        x = x_ref.copy()
+        for i in range(count):
+            mine = reference == i
+            if est.H[i] is None:
+                gains[i] = np.where(mine[..., None, None], remainder, gains[i])
+            innovation = est.x[i] - (x_ref if est.H[i] is None else x_ref @ est.H[i].T)
+            step = (gains[i] @ innovation[..., None])[..., 0]
+            x = x + np.where(mine[..., None], 0.0, step)
+    else:
+        x = np.zeros(batch + (n,))
+        for i in range(count):
+            x = x + (gains[i] @ est.x[i][..., None])[..., 0]
+    P = np.zeros(batch + (n, n))
+    for i in range(count):
+        w = weights[..., i, None, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            M = np.where(w > 0.0, (gains[i] @ est.L[i]) / np.sqrt(w), 0.0)
+        P = P + M @ M.swapaxes(-1, -2)
+    return x, symmetrize(P), tuple(gains)
+
+
+def _singular_message(est, roots, weights, problem, what):
+    """The error for a fused information that is singular at ``weights`` (one problem):
+    a ValueError naming the directions that the estimates of positive weight do not
+    observe, or, where they observe every direction and only the weights make the
+    information numerically singular, an IllConditionedError."""
+    index = tuple(int(i) for i in problem)
+    used = [i for i in range(est.count) if weights[index + (i,)] > 0.0]
+    G = np.concatenate([roots.G[index + (i,)] for i in used], axis=0)
+    directions = unobserved_directions(G)
+    where = f" (problem {list(index)})" if index else ""
+    if not directions:
+        J = sum(weights[index + (i,)] * roots.G[index + (i,)].T @ roots.G[index + (i,)]
+                for i in used)
+        return ill_conditioned(
+            f"{what}{where}: the fused information sum_i w_i H_i^T P_i^-1 H_i",
+            np.linalg.cond(J))
+    shown = ", ".join(str(v) for v in directions)
+    return ValueError(
+        f"{what}{where}: sum_i {'w_i ' if what.startswith('with') else ''}H_i^T P_i^-1 H_i "
+        f"is singular; unobserved direction(s) of the state (a basis of its null space, in "
+        f"state coordinates): {shown}"
+    )
+
+
+def _factors_or_raise(est, roots, weights, what):
+    """:func:`information_factors` at ``weights``; a singular problem raises the error
+    naming its unobserved directions."""
+    factors = information_factors(roots.G, weights, failures="nan")
+    singular = np.isnan(factors.R[..., 0, 0])
+    if np.any(singular):
+        problem = np.unravel_index(int(np.argmax(singular.ravel())), singular.shape)
+        raise _singular_message(est, roots, weights, problem, what)
+    return factors
+
+
+def check_observable(est, roots):
+    """Raise a ValueError naming the unobserved directions when ``sum_i H_i^T P_i^-1 H_i``
+    is singular (never when some estimate is of the full state)."""
+    if est.full:
+        return
+    uniform = np.full(est.batch_shape + (est.count,), 1.0 / est.count)
+    _factors_or_raise(est, roots, uniform,
+                      "the estimates together do not observe the state")
+
+
+def generalised_weights(roots, kind, W, count, shape):
+    """Criterion-optimal weights by the active-set Newton method on the simplex.
+
+    As the full-state simplex solver (``docs/methods/simplex_solver.rst``) on the square
+    roots ``G_i``: ``g_i = -trace(W B_i B_i^T)`` or ``-||C_i||^2`` and the Hessians of
+    :func:`cifilter._numerics.information.trace_curvature`; where the fused information is
+    singular the criterion is +inf (rejected by the line searches). The solver's last,
+    unchecked step can land on such a face (next to an optimum close to it): then the best
+    finite point it evaluated is returned instead. Returns ``(weights, iterations)``.
+    """
+    size = int(np.prod(shape, dtype=int))
+    G = roots.G.reshape((size,) + roots.G.shape[-3:])
+    Wf = None if W is None else np.broadcast_to(W, shape + W.shape[-2:]).reshape(
+        (size,) + W.shape[-2:])
+    best_f = np.full(size, np.inf)
+    best_w = np.full((size, count), 1.0 / count)
+
+    def remember(w, index, f):
+        better = np.isfinite(f) & (f < best_f[index])
+        best_f[index[better]] = f[better]
+        best_w[index[better]] = w[better]
+
+    def objective(w, index):
+        factors = information_factors(G[index], w, failures="nan")
+        value = criterion_of_factor(factors.R_inv, kind, None if Wf is None else Wf[index])
+        value = np.where(np.isnan(value), np.inf, value)
+        remember(w, index, value)
+        return value
+
+    def evaluate(w, index):
+        factors = information_factors(G[index], w, failures="nan")
+        Wi = None if Wf is None else Wf[index]
+        f = criterion_of_factor(factors.R_inv, kind, Wi)
+        g = criterion_gradient(factors, kind, Wi)
+        if kind == "det":
+            CtC = np.einsum("...iab,...jac->...ijbc", factors.C, factors.C)
+            H = np.einsum("...ijbc,...ijbc->...ij", CtC, CtC)
+        else:
+            H = 2.0 * trace_curvature(factors, Wi)
+        singular = np.isnan(f)
+        f = np.where(singular, np.inf, f)
+        remember(w, index, f)
+        g = np.where(singular[:, None], 0.0, g)
+        H = np.where(singular[:, None, None], np.eye(w.shape[-1]), symmetrize(H))
+        return f, -g, H
+
+    with np.errstate(invalid="ignore", over="ignore"):
+        weights, iterations, _ = minimize_convex_simplex(
+            evaluate, objective, count, (size,), gtol=0.25 * GAP_TOL,
+            absolute_gap=kind == "det", subset=True)
+        final = information_factors(G, weights.reshape(size, count), failures="nan")
+    landed = np.isnan(final.R[:, 0, 0])  # on a singular face: the best point seen
+    weights = np.where(landed[:, None], best_w, weights.reshape(size, count))
+    return weights.reshape(shape + (count,)), iterations.reshape(shape)
+
+
+def _certify(roots, weights, kind, W):
+    """``(factors, gap)`` at ``weights`` (gap inf where the information is singular)."""
+    factors = information_factors(roots.G, weights, failures="nan")
+    g = criterion_gradient(factors, kind, W)
+    value = criterion_of_factor(factors.R_inv, kind, W)
+    with np.errstate(invalid="ignore"):
+        gap = certified_gap(weights, g, value, kind)
+    return factors, np.where(np.isnan(gap), np.inf, gap)
+
+
+def _pair_single(est, kind, W):
+    """One problem of two estimates, one of them of the full state: the diagonalised path.
+
+    With ``a`` the full-state estimate (weight ``w``), ``b`` the partial one and the SVD
+    ``L_b^-1 H L_a = V S U^T``, ``T = L_a U`` gives ``P(w) = T diag(d) T^T`` with
+    ``d_k = 1 / (mu_k + w (1 - mu_k))``, ``mu_k = s_k^2`` (0 beyond the rank), so the
+    criterion is a sum of scalar terms (eq. (H7)); Newton's method in Python floats, the
+    certified gap of :func:`cifilter._numerics.optimize.interval_gap`. Gains (eq. (H8)):
+    ``K_b = (1 - w) T diag(d) S^T V^T L_b^-1``, ``K_a = I - K_b H``. Returns None where the
+    diagonalisation is not trusted (spread of the nonzero ``mu`` or of the factors'
+    diagonals above 1e6, as for full states); the simplex path decides there.
+    """
+    full = est.full
+    if est.count != 2 or len(full) != 1 or est.batch_shape:
+        return None
+    a = full[0]
+    b = 1 - a
+    n = est.dim
+    La, Lb, H = est.L[a], est.L[b], est.H[b]
+    Lb_inv = lower_inverse_single(Lb)
+    G = Lb_inv @ H @ La
+    V, s, Ut, failed = lapack.dgesdd(G, compute_uv=1, full_matrices=1)
+    if failed:
+        return None
+    r = s.size
+    nonzero = sorted(float(v) ** 2 for v in s)
+    if not single_diagonalisation_trusted(nonzero, (La, Lb)):
+        return None
+    U = Ut.T
+    mu = [float(v) ** 2 for v in s] + [0.0] * (n - r)
+    T = La @ U
+    if kind == "det":
+        c = None
+        scale = float(n)
+    else:
+        c = (np.square(T).sum(axis=0) if kind == "trace"
+             else np.einsum("ik,ij,jk->k", T, W, T)).tolist()
+        scale = sum(c)
+    one_minus = [1.0 - m for m in mu]
+
+    def derivative(w):
+        slope = curvature = 0.0
+        for k in range(n):
+            den = mu[k] + w * one_minus[k]
+            if den <= 0.0:
+                return -np.inf, np.inf
+            d = 1.0 / den
+            if c is None:
+                slope -= one_minus[k] * d
+                curvature += (one_minus[k] * d) ** 2
+            else:
+                term = c[k] * one_minus[k] * d * d
+                slope -= term
+                curvature += 2.0 * term * one_minus[k] * d
+        return slope, curvature
+
+    w, iterations, _ = minimize_convex_scalar(derivative, scale=scale)
+    slope, _ = derivative(w)
+    gap = interval_gap(w, slope)
+    d = [1.0 / (mu[k] + w * one_minus[k]) if mu[k] + w * one_minus[k] > 0.0 else np.inf
+         for k in range(n)]
+    if c is not None:
+        gap /= sum(ck * dk for ck, dk in zip(c, d))
+    if not np.isfinite(gap) or not all(np.isfinite(d)):
+        return None
+    m = H.shape[0]
+    if w == 1.0:
+        Kb = np.zeros((n, m))
+    else:
+        scaled = T[:, :r] * (np.array(d[:r]) * s)
+        Kb = (1.0 - w) * (scaled @ V[:, :r].T @ Lb_inv)
+    Ka = np.zeros((n, n)) if w == 0.0 else np.eye(n) - Kb @ H
+    P = np.zeros((n, n))
+    for K, L, weight in ((Ka, La, w), (Kb, Lb, 1.0 - w)):
+        if weight > 0.0:
+            M = K @ L
+            P += (M @ M.T) / weight
+    x = Kb @ est.x[b] if w == 0.0 else est.x[a] + Kb @ (est.x[b] - H @ est.x[a])
+    weights = np.empty(2)
+    weights[a], weights[b] = w, 1.0 - w
+    gains = [None, None]
+    gains[a], gains[b] = Ka, Kb
+    info = {"iterations": np.array(iterations), "converged": np.array(gap <= GAP_TOL),
+            "gap": np.array(gap), "solver": "diagonalise"}
+    return weights, info, (x, 0.5 * (P + P.T), tuple(gains))
+
+
+def _fast_partial_weights(est, roots):
+    """Niehsen's fast rule for partial estimates: ``w_i`` proportional to
+    ``1 / tr((H_i^T P_i^-1 H_i)^+)`` (eq. (H9)): ``1 / tr(P_i)`` for a full-state estimate,
+    the trace of the covariance of the observed part otherwise (``tr(P_i)`` for a selection
+    ``H_i``), from the singular values of ``L_i^-1 H_i``."""
+    traces = []
+    for i in range(est.count):
+        if est.H[i] is None:
+            traces.append(np.trace(est.P[i], axis1=-2, axis2=-1))
+            continue
+        G = roots.L_inv[i] @ est.H[i]
+        s = np.linalg.svd(G, compute_uv=False)
+        top = s.max(axis=-1, keepdims=True)
+        keep = s > max(G.shape[-2:]) * np.finfo(float).eps * top
+        traces.append(np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0).sum(axis=-1))
+    inverse = 1.0 / np.stack(traces, axis=-1)
+    return inverse / inverse.sum(axis=-1, keepdims=True)
+
+
+def _result(est, method, x, P, gains, weights, omega, info, kind=None, W=None):
+    n = est.dim
+    if kind is not None:
+        info.update(criterion_report(P, kind, W))
+    else:
+        criterion_report(P, "trace", None)  # the conditioning contract's check of P
+    info["gains"] = gains
+    stacked = None
+    if all(K.shape[-1] == n for K in gains):
+        stacked = np.stack(gains, axis=-3)
+    return FusionResult(restore_style(x, est.column), P, method, omega, stacked, info,
+                        weights=weights)
+
+
+def generalised_ci(est: Any, kind: str, W: Optional[np.ndarray], omega: Any = None,
+                   fast_rules: tuple = ()) -> FusionResult:
+    """The ``"ci"`` rule on :class:`~cifilter._numerics.alignment.PartialEstimates`.
+
+    ``omega`` None minimises the criterion (the diagonalised path for one problem of a
+    full-state and a partial estimate, else the simplex solver), a fast rule's name
+    (``"fast"`` only: the determinant rules compare covariances of different dimensions),
+    or given weights. The result's ``gains`` are (..., N, n, n) when every ``m_i = n``,
+    else None; ``info["gains"]`` always holds the tuple of ``K_i`` (..., n, m_i).
+    """
+    info = {"criterion": kind}
+    if omega is None and (W is None or W.ndim == 2):
+        single = _pair_single(est, kind, W)  # (a full-state estimate: observable)
+        if single is not None:
+            weights, solver_info, (x, P, gains) = single
+            info.update(rule="optimal", **solver_info)
+            return _result(est, "ci", x, P, gains, weights, weights, info, kind, W)
+    roots = square_roots(est)
+    check_observable(est, roots)
+    if omega is None:
+        Wb = None if W is None else np.broadcast_to(W, est.batch_shape + W.shape[-2:])
+        weights, iterations = generalised_weights(roots, kind, Wb, est.count,
+                                                  est.batch_shape)
+        factors, gap = _certify(roots, weights, kind, Wb)
+        info.update(rule="optimal", iterations=iterations, converged=gap <= GAP_TOL,
+                    gap=gap, solver="simplex")
+    elif isinstance(omega, str):
+        if omega not in fast_rules:
+            raise ValueError(
+                f"omega must be None, weights or one of {', '.join(map(repr, fast_rules))}; "
+                f"got {omega!r}")
+        if omega != "fast":
+            raise ValueError(
+                f"omega={omega!r} compares the determinants of the estimates' covariances, "
+                "which with H= are of different dimensions; use omega='fast', given "
+                "weights or the optimal weights (omega=None)")
+        weights = _fast_partial_weights(est, roots)
+        factors = _factors_or_raise(est, roots, weights, "with the weights of omega='fast'")
+        info["rule"] = "fast"
+    else:
+        weights = check_weights(omega, est.count, batch_shape=est.batch_shape)
+        factors = _factors_or_raise(est, roots, weights, "with the given weights omega")
+        info["rule"] = "fixed"
+    x, P, gains = generalised_assembly(est, roots, weights, factors)
+    return _result(est, "ci", x, P, gains, weights, weights, info, kind, W)
+
+
+def generalised_naive(est: Any) -> FusionResult:
+    """The ``"naive"`` rule on partial estimates: all weights one,
+    ``P^-1 = sum_i H_i^T P_i^-1 H_i`` and ``P = sum_i K_i P_i K_i^T`` (eq. (H5))."""
+    roots = square_roots(est)
+    check_observable(est, roots)
+    weights = np.ones(est.batch_shape + (est.count,))
+    factors = _factors_or_raise(est, roots, weights,
+                                "the estimates together do not observe the state")
+    x, P, gains = generalised_assembly(est, roots, weights, factors)
+    return _result(est, "naive", x, P, gains, weights, None, {})
