@@ -19,6 +19,16 @@ A tree other than the installed one is timed with ``--tree PATH`` (it is put fir
 selects the backend of the CI family (``cifilter.set_backend``; default ``auto``, under
 which single calls stay on numpy), e.g. ``--backend numba --only "ci (trace),ci (det)"``
 to time the compiled kernels on the single-call path.
+
+``--interleaved`` times only the three single calls of issue 24 (``kf.fuse(other,
+method="ci")``, ``cifilter.fuse`` on two ``(x, P)`` pairs and filterpy's ``update``) with
+their calls interleaved one by one (``--repeat`` rounds of ``--number`` calls of each), so
+that a disturbance of the shared machine hits each alike, and reports the minimum and the
+median call of each, with the numpy backend and with ``"auto"`` (numba when installed,
+after a warm-up); ``--profile`` adds a cProfile breakdown of ``kf.fuse`` by layer and the
+number of Python calls per fuse:
+
+    python benchmarks/bench_latency.py --interleaved --profile
 """
 
 import argparse
@@ -175,6 +185,116 @@ def run(tree=None, number=200, repeat=7, only=None, backend=None):
     return update, rows
 
 
+def interleaved(tree=None, number=200, repeat=9, backends=("numpy", "auto")):
+    """{backend: {label: (min, median)}} of the three single calls, interleaved."""
+    import time
+
+    cifilter, FilterpyKF = _setup(tree)
+    F, H, Q, R = _model()
+    xs, Ps = _estimates()
+    both = [(xs[0], Ps[0]), (xs[1], Ps[1])]
+    other = (xs[1], Ps[1])
+    z = np.array([[0.3], [-0.2]])
+    x0, P0 = xs[0].reshape(4, 1).copy(), Ps[0].copy()
+
+    def make(cls):
+        kf = cls(dim_x=4, dim_z=2)
+        kf.F, kf.H, kf.Q, kf.R = F, H, Q, R
+        kf.x, kf.P = x0, P0
+        return kf
+
+    reference, kf = make(FilterpyKF), make(cifilter.KalmanFilter)
+
+    def update():
+        reference.x, reference.P = x0, P0
+        start = clock()
+        reference.update(z)
+        return clock() - start
+
+    def through_filter():
+        kf.x, kf.P = x0, P0
+        start = clock()
+        kf.fuse(other, method="ci")
+        return clock() - start
+
+    def through_front_door():
+        start = clock()
+        cifilter.fuse(both)
+        return clock() - start
+
+    clock = time.perf_counter
+    calls = (("update", update), ("kf.fuse", through_filter),
+             ("cifilter.fuse", through_front_door))
+    out = {}
+    for backend in backends:
+        cifilter.set_backend(backend)
+        for _ in range(50):  # warm up (imports, caches, compilation under numba)
+            for _, call in calls:
+                call()
+        samples: dict = {label: [] for label, _ in calls}
+        for _ in range(repeat):
+            for _ in range(number):
+                for label, call in calls:
+                    samples[label].append(call())
+        out[backend] = {label: (min(v), float(np.median(v))) for label, v in samples.items()}
+    cifilter.set_backend("auto")
+    return out
+
+
+# The layers of kf.fuse in the profile: (label, substrings of "file:function").
+_LAYERS = (
+    ("filter layer (kalman.py)", ("filters/kalman.py",)),
+    ("registry (registry.py)", ("cifilter/registry.py",)),
+    ("validation", ("_numerics/validation.py",)),
+    ("alignment", ("_numerics/alignment.py",)),
+    ("rule core (rules/)", ("cifilter/rules/",)),
+    ("kernels and backend", ("_kernels/", "cifilter/backend.py")),
+    ("other numerics", ("cifilter/_numerics/",)),
+    ("result (result.py)", ("cifilter/result.py",)),
+)
+
+
+def profile(tree=None, calls=2000):
+    """Self time of ``kf.fuse(other, method="ci")`` by layer (cProfile), per call, and
+    the Python function calls per fuse; numpy's and the builtins' time is counted apart."""
+    import cProfile
+    import pstats
+
+    cifilter, _ = _setup(tree)
+    cifilter.set_backend("numpy")
+    F, H, Q, R = _model()
+    xs, Ps = _estimates()
+    other = (xs[1], Ps[1])
+    kf = cifilter.KalmanFilter(dim_x=4, dim_z=2)
+    kf.F, kf.H, kf.Q, kf.R = F, H, Q, R
+    x0, P0 = xs[0].reshape(4, 1).copy(), Ps[0].copy()
+
+    def loop():
+        for _ in range(calls):
+            kf.x, kf.P = x0, P0
+            kf.fuse(other, method="ci")
+
+    loop()
+    profiler = cProfile.Profile()
+    profiler.runcall(loop)
+    stats = pstats.Stats(profiler).stats  # type: ignore[attr-defined]
+    layers = {label: 0.0 for label, _ in _LAYERS}
+    layers["numpy and builtins"] = 0.0
+    total_calls = 0
+    for (filename, _, _), (_, ncalls, self_time, _, _) in stats.items():
+        total_calls += ncalls
+        where = filename.replace("\\", "/")
+        for label, keys in _LAYERS:
+            if any(key in where for key in keys):
+                layers[label] += self_time
+                break
+        else:
+            layers["numpy and builtins"] += self_time
+    cifilter.set_backend("auto")
+    total = sum(layers.values())
+    return {k: v / calls for k, v in layers.items()}, total / calls, (total_calls - 1) / calls
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tree", help="import cifilter from this source tree")
@@ -184,7 +304,26 @@ def main(argv=None):
     parser.add_argument("--only", help="comma-separated labels of the rows to time")
     parser.add_argument("--backend", choices=("auto", "numpy", "numba"),
                         help="backend of the CI family (cifilter.set_backend)")
+    parser.add_argument("--interleaved", action="store_true",
+                        help="kf.fuse, cifilter.fuse and filterpy's update, interleaved")
+    parser.add_argument("--profile", action="store_true",
+                        help="with --interleaved: kf.fuse's profile by layer")
     args = parser.parse_args(argv)
+    if args.interleaved:
+        table = interleaved(args.tree, args.number, max(args.repeat, 9))
+        for backend, row in table.items():
+            base_min, base_median = row["update"]
+            print(f"backend {backend}")
+            for label, (low, middle) in row.items():
+                print(f"  {label:14s} min {low * 1e6:7.1f} us ({low / base_min:5.2f}x update)"
+                      f"  median {middle * 1e6:7.1f} us ({middle / base_median:5.2f}x update)")
+        if args.profile:
+            layers, total, count = profile(args.tree)
+            print(f"cProfile of kf.fuse (numpy backend; profiled: {total * 1e6:.1f} us per "
+                  f"call, {count:.0f} Python calls per fuse), self time per layer:")
+            for label, seconds in layers.items():
+                print(f"  {label:28s} {seconds * 1e6:7.1f} us")
+        return
     only = None if args.only is None else set(args.only.split(","))
     update, rows = run(args.tree, args.number, args.repeat, only, args.backend)
     us = 1e6

@@ -617,9 +617,20 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
         raise TypeError(
             f"estimates must be a sequence of estimates, got {type(estimates).__name__}"
         )
-    pairs = [split_estimate(item, i, labels) for i, item in enumerate(estimates)]
+    # (a plain 2-tuple is an (x, P) pair as it is: split_estimate's answer, without its
+    # attribute look-ups)
+    pairs = [item if type(item) is tuple and len(item) == 2 else split_estimate(item, i, labels)
+             for i, item in enumerate(estimates)]
     if len(pairs) < 2:
         raise ValueError(f"at least 2 estimates are needed, got {len(pairs)}")
+    if (H is None and residual is None and add is None and times is None and at is None
+            and motion is None and horizon is None and model is None):
+        # no front-door option: the checks below reduce to the rule's options
+        _check_options(record, options)
+        stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs],
+                               names=_NAMES if labels is None else _LABELLED_NAMES,
+                               labels=labels)
+        return _call_rule(record, stacked, options)
     Hs = check_observation_matrices(H, len(pairs))
     requested = [option for option, given in (("H", Hs is not None),
                                               ("residual", residual is not None
@@ -653,6 +664,10 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
         return _call_rule(record, stacked, options)
     return _fuse_through_front_door(record, pairs, options, horizon, model, labels, names, Hs,
                                     residual, add, times, at, motion)
+
+
+_NAMES = ("estimates' x", "estimates' P")
+_LABELLED_NAMES = ("x", "P")
 
 
 def _call_rule(record, estimates, options):

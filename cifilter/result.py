@@ -46,6 +46,11 @@ def _frozen_info(value):
     """
     if isinstance(value, _IMMUTABLE):  # the common case first: info is on every result
         return value
+    if type(value) is np.ndarray:
+        if value.flags.writeable:
+            value = value.view()
+            value.flags.writeable = False
+        return value
     if isinstance(value, np.ndarray):
         return _frozen(value)
     if isinstance(value, (dict, MappingProxyType)) or isinstance(value, Mapping):
@@ -153,7 +158,11 @@ class FusionResult:
         set_field(self, "P", _frozen(self.P))
         set_field(self, "omega", _frozen(self.omega))
         set_field(self, "gains", _frozen(self.gains))
-        set_field(self, "info", _frozen_info(dict(self.info)))
+        info = self.info
+        if not isinstance(info, Mapping):  # (pairs, say) a mapping first
+            info = dict(info)
+        # a mapping is copied by _frozen_info itself (into a fresh read-only mapping)
+        set_field(self, "info", _frozen_info(info))
         set_field(self, "weights", self.omega if self.weights is None else _frozen(self.weights))
 
     def __repr__(self):

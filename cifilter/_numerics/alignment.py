@@ -8,7 +8,8 @@ The front door (:func:`cifilter.fuse`) uses these helpers for its options ``H=``
   each with its own dimension m_i, and :func:`as_partial_estimates` builds it.
   :func:`unobserved_directions` names the state directions that no estimate observes.
 * **Time.** Estimate ``i`` describes the state at ``times[i]``; :func:`align_in_time`
-  brings it to ``at`` with ``(F, Q) = motion(dt)``: older estimates are predicted
+  brings it to ``at`` with ``(F, Q) = motion(dt)`` (:class:`StepMotion`: whole steps of a
+  filter's ``F`` and ``Q``, checked once per ``(F, Q, k)``): older estimates are predicted
   (``F x``, ``F P F^T + Q``, exact), newer ones retrodicted with the bound
   ``F^-1 (P / alpha + Q / (1 - alpha)) F^-T`` (:func:`retrodicted`; derivation and proof in
   ``docs/methods/time.rst``).
@@ -32,6 +33,7 @@ from .validation import PSD_RTOL, SYMMETRY_RTOL, as_estimates, as_float_array, c
 
 __all__ = [
     "PartialEstimates",
+    "StepMotion",
     "added_to_reference",
     "align_in_time",
     "as_partial_estimates",
@@ -109,6 +111,10 @@ def check_observation_matrices(H: Any, count: int) -> Optional[tuple]:
     for i, entry in enumerate(H):
         if entry is None:
             out.append(None)
+            continue
+        if (type(entry) is np.ndarray and entry.dtype == np.float64 and entry.ndim == 2
+                and 0 not in entry.shape and math.isfinite(float(entry.sum()))):
+            out.append(entry.copy())  # the usual matrix: the checks below pass; a copy
             continue
         matrix = as_float_array(entry, f"H[{i}]")
         if matrix.ndim != 2 or 0 in matrix.shape:
@@ -375,7 +381,7 @@ def _inverse_by_lu(F, name):
 
 
 def retrodicted(x: np.ndarray, L: np.ndarray, F: np.ndarray, Q: np.ndarray,
-                name: str = "F") -> tuple:
+                name: str = "F", F_inv: Optional[np.ndarray] = None) -> tuple:
     """A newer estimate brought back: ``F^-1 x`` and the bound
     ``F^-1 (P / alpha + Q / (1 - alpha)) F^-T`` (eqs. (T5)-(T6) of ``docs/methods/time.rst``,
     a bound by (T3)).
@@ -388,8 +394,10 @@ def retrodicted(x: np.ndarray, L: np.ndarray, F: np.ndarray, Q: np.ndarray,
     factorisation; a singular or numerically singular ``F`` (estimated condition number
     above 1e12) raises
     :class:`~cifilter._numerics.linalg.IllConditionedError`. Returns ``(x, P, alpha)``.
+    ``F_inv``, when given, is that inverse already computed (:meth:`StepMotion.inverse`).
     """
-    F_inv = _inverse_by_lu(F, name)
+    if F_inv is None:
+        F_inv = _inverse_by_lu(F, name)
     A = F_inv @ L  # F^-1 L: F^-1 P F^-T = A A^T
     Q_back = F_inv @ Q @ F_inv.T  # (the sum below is symmetrised)
     b = float(Q_back.trace())
@@ -405,6 +413,107 @@ def retrodicted(x: np.ndarray, L: np.ndarray, F: np.ndarray, Q: np.ndarray,
     if b > 0.0:
         P = P + Q_back / (1.0 - alpha)[..., None, None]
     return x @ F_inv.T, symmetrize(P), alpha
+
+
+# (k, F's shape and bytes, Q's shape and bytes) -> [F^k, Q_k, F^-k or None], as checked
+# by motion_matrices; the least recently used entry goes first beyond _STEP_CACHE_SIZE
+_STEP_CACHE: dict = {}
+_STEP_CACHE_SIZE = 64
+
+
+class StepMotion:
+    """``motion(k) -> (F^k, Q_k)`` for ``k`` whole steps of a discrete model (``lag=``).
+
+    ``Q_k = sum_{j<k} F^j Q F^jT``, accumulated as ``Q_k = F Q_{k-1} F^T + Q``.
+    :func:`align_in_time` asks :meth:`checked` instead of calling it: the pair checked by
+    :func:`motion_matrices` (and, for a retrodiction, ``F^-k``) is computed once per
+    ``(F, Q, k)`` and kept in a small cache keyed by ``k`` and the *bytes* (and shapes) of
+    ``F`` and ``Q`` as they are at the call, so a model changed in place, or another
+    model, never meets an entry of the old one. Cached arrays are read-only.
+
+    Parameters
+    ----------
+    F, Q : ndarray, shape (n, n)
+        The state transition of one step and its process noise covariance (float64; not
+        copied, not modified).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> motion = StepMotion(np.array([[1.0, 1.0], [0.0, 1.0]]), np.eye(2))
+    >>> F_2, Q_2 = motion(2)
+    >>> F_2.tolist(), Q_2.tolist()
+    ([[1.0, 2.0], [0.0, 1.0]], [[3.0, 1.0], [1.0, 2.0]])
+    """
+
+    def __init__(self, F: np.ndarray, Q: np.ndarray) -> None:
+        self.F, self.Q = F, Q
+
+    def __call__(self, steps: float) -> tuple:
+        """``(F^k, Q_k)`` for ``k = steps`` whole steps (a ValueError otherwise)."""
+        k = round(float(steps))
+        if k != steps or k < 1:
+            raise ValueError(f"lag= shifts by whole steps of the filter, got {steps}")
+        F_k, Q_k = self.F, self.Q
+        for _ in range(k - 1):
+            Q_k = self.F @ Q_k @ self.F.T + self.Q
+            F_k = self.F @ F_k
+        return F_k, (Q_k if k == 1 else 0.5 * (Q_k + Q_k.T))
+
+    def _entry(self, steps: float, n: int) -> list:
+        F, Q = self.F, self.Q
+        key = (steps, n, F.shape, F.tobytes(), Q.shape, Q.tobytes())
+        entry = _STEP_CACHE.pop(key, None)
+        if entry is None:
+            F_k, Q_k = motion_matrices(self, steps, n)
+            F_k.flags.writeable = Q_k.flags.writeable = False
+            entry = [F_k, Q_k, None]
+            if len(_STEP_CACHE) >= _STEP_CACHE_SIZE:
+                del _STEP_CACHE[next(iter(_STEP_CACHE))]
+        _STEP_CACHE[key] = entry  # (re)inserted last: the most recently used
+        return entry
+
+    def checked(self, steps: float, n: int) -> tuple:
+        """:func:`motion_matrices` of this motion (read-only arrays, cached).
+
+        Parameters
+        ----------
+        steps : float
+            The whole number of steps ``k``.
+        n : int
+            The state dimension.
+
+        Returns
+        -------
+        tuple of ndarray
+            ``(F^k, Q_k)``, as :func:`motion_matrices` returns them.
+        """
+        entry = self._entry(steps, n)
+        return entry[0], entry[1]
+
+    def inverse(self, steps: float, n: int, name: str) -> np.ndarray:
+        """``F^-k`` as :func:`retrodicted` computes it (read-only, cached on success).
+
+        Parameters
+        ----------
+        steps : float
+            The whole number of steps ``k``.
+        n : int
+            The state dimension.
+        name : str
+            The matrix's name in the error for a singular ``F^k``.
+
+        Returns
+        -------
+        ndarray
+            ``F^-k`` from the LU factorisation of ``F^k``.
+        """
+        entry = self._entry(steps, n)
+        if entry[2] is None:
+            F_inv = _inverse_by_lu(entry[0], name)
+            F_inv.flags.writeable = False
+            entry[2] = F_inv
+        return entry[2]
 
 
 def align_in_time(x: list, L: list, movable: list, times: tuple, at: float,
@@ -436,12 +545,15 @@ def align_in_time(x: list, L: list, movable: list, times: tuple, at: float,
             raise TypeError(f"motion must be callable (dt -> (F, Q)), got "
                             f"{type(motion).__name__}")
         dt = abs(at - t)
-        F, Q = motion_matrices(motion, dt, n)
+        steps = motion if isinstance(motion, StepMotion) else None
+        F, Q = steps.checked(dt, n) if steps is not None else motion_matrices(motion, dt, n)
         if t < at:
             x[i], P[i] = predicted(x[i], L[i], F, Q)
         else:
+            name = f"F of motion({dt!r}) (for {where[i]}, newer than at)"
             x[i], P[i], alpha[i] = retrodicted(
-                x[i], L[i], F, Q, name=f"F of motion({dt!r}) (for {where[i]}, newer than at)")
+                x[i], L[i], F, Q, name=name,
+                F_inv=steps.inverse(dt, n, name) if steps is not None else None)
         changed.append(i)
     return x, P, alpha, changed
 

@@ -25,6 +25,7 @@ from filterpy.kalman import ExtendedKalmanFilter as _FilterpyEKF
 from filterpy.kalman import KalmanFilter as _FilterpyKF
 from filterpy.kalman import UnscentedKalmanFilter as _FilterpyUKF
 
+from .._numerics.alignment import StepMotion
 from .._numerics.validation import check_int
 from ..registry import fuse_estimates, split_estimate
 from ..result import FusionResult
@@ -78,14 +79,23 @@ def _single_estimates(estimates, labels):
     UKF's (n,), or (1, n)); (n,) and (n, 1) pass unchanged, other shapes become (n,).
     Batches (a covariance with more than two axes, an x with more than n numbers) are
     rejected with a ``ValueError`` naming the estimate. Nothing is copied or modified here;
-    the validation of the fusion copies.
+    the validation of the fusion copies. An other estimate's ``x`` of shape (n,) or (n, 1)
+    of the filter's n is given the filter's own style (a view; the same numbers), so that
+    the usual call (filterpy's (n, 1) state, an (n,) track) takes the validation's fast
+    path, which needs the means in one style; the fused ``x`` keeps the filter's style.
     """
     pairs = []
+    style = None  # the shape of this filter's x when it is (n,) or (n, 1)
     for i, item in enumerate(estimates):
         x, P = split_estimate(item, i, labels)
         if (isinstance(x, np.ndarray) and isinstance(P, np.ndarray) and P.ndim == 2
                 and x.shape in ((P.shape[0],), (P.shape[0], 1))):
-            pairs.append((x, P))  # the usual filterpy shapes: nothing to check here
+            # the usual filterpy shapes: nothing to check here
+            if i == 0:
+                style = x.shape
+            elif style is not None and x.shape != style and P.shape[0] == style[0]:
+                x = x.reshape(style)
+            pairs.append((x, P))
             continue
         try:
             x_shape, P_shape = np.shape(x), np.shape(P)
@@ -122,24 +132,6 @@ def _own_model(filt):
     return {name: getattr(filt, name) for name in ("F", "Q", "H", "R")}
 
 
-class _StepModel:
-    """``motion(k) -> (F^k, Q_k)`` for ``k`` whole steps of a filter's model (``lag=``):
-    ``Q_k = sum_{j<k} F^j Q F^jT``, accumulated as ``Q_k = F Q_{k-1} F^T + Q``."""
-
-    def __init__(self, F, Q):
-        self.F, self.Q = F, Q
-
-    def __call__(self, steps):
-        k = round(float(steps))
-        if k != steps or k < 1:
-            raise ValueError(f"lag= shifts by whole steps of the filter, got {steps}")
-        F_k, Q_k = self.F, self.Q
-        for _ in range(k - 1):
-            Q_k = self.F @ Q_k @ self.F.T + self.Q
-            F_k = self.F @ F_k
-        return F_k, (Q_k if k == 1 else 0.5 * (Q_k + Q_k.T))
-
-
 def _lag_times(lag, count):
     """``times``, ``at`` for ``lag=``: this filter at 0, other ``i`` at ``-lag_i``."""
     lags = list(lag) if isinstance(lag, (list, tuple)) else [lag] * (count - 1)
@@ -160,7 +152,9 @@ def _own_step_model(filt):
             f"{type(filt).__name__} has no matrix {', '.join(missing)}; give times=, at= "
             "and motion= (dt -> (F, Q)) instead"
         )
-    return _StepModel(np.array(filt.F, dtype=float), np.array(filt.Q, dtype=float))
+    # (not copied: StepMotion neither keeps nor changes them past the call, and its cache
+    # is keyed by their bytes at the call)
+    return StepMotion(np.asarray(filt.F, dtype=float), np.asarray(filt.Q, dtype=float))
 
 
 def _own_residual(filt, residual, add):

@@ -162,6 +162,80 @@ def test_negative_lag_is_the_front_door_with_the_filters_steps():
     np.testing.assert_allclose(again.P, direct.P, rtol=1e-14)
 
 
+def _explicit_lag(kf, other, k, **options):
+    """``kf.fuse(other, lag=k)`` written out with the filter's F and Q at this moment,
+    without the step cache: motion= with a plain function (k > 0: prediction, k < 0:
+    retrodiction; both the front door's own, uncached path)."""
+    F, Q = np.array(kf.F), np.array(kf.Q)
+
+    def motion(dt):
+        F_k, Q_k = np.eye(len(F)), np.zeros_like(Q)
+        for _ in range(int(dt)):
+            F_k, Q_k = F @ F_k, F @ Q_k @ F.T + Q
+        return F_k, Q_k
+
+    return fuse([own(kf), other], times=[0.0, -float(k)], at=0.0, motion=motion, **options)
+
+
+@pytest.mark.parametrize("k", [2, -2])
+@pytest.mark.parametrize("change", ["F", "Q"])
+def test_lag_follows_F_and_Q_changed_in_place(k, change):
+    """The k-step (F^k, Q_k) (and F^-k) are cached per (F, Q, k): a filter whose F or Q is
+    changed in place (same array objects) must not meet the entry of the old model."""
+    other = (np.array([0.2, 0.4]), np.array([[1.0, 0.2], [0.2, 0.6]]))
+    kf = cv_filter()
+    start = kf.x.copy(), kf.P.copy()
+    first = kf.fuse(other, lag=k)  # fills the cache for the old model
+    kf.x, kf.P = start  # the same filter, its F or Q changed in place below
+    matrix = kf.F if change == "F" else kf.Q
+    if change == "F":
+        matrix[0, 1] = 3.0  # in place: the same array object, other numbers
+    else:
+        matrix *= 7.0
+    expected = _explicit_lag(kf, other, k)
+    result = kf.fuse(other, lag=k)
+    np.testing.assert_allclose(result.P, expected.P, rtol=1e-12)
+    np.testing.assert_allclose(result.x, expected.x, rtol=1e-12, atol=1e-14)
+    assert not np.allclose(result.P, first.P)  # the change matters for this case
+
+
+def test_lag_cache_is_not_shared_across_models():
+    """Two filters with different models, called in turn (each call a cache hit after the
+    first round), each fuse with their own model's k steps."""
+    other = (np.array([0.2, 0.4]), np.array([[1.0, 0.2], [0.2, 0.6]]))
+    slow, fast = cv_filter(), cv_filter()
+    fast.F = np.array([[1.0, 2.5], [0.0, 1.0]])
+    fast.Q = 3.0 * Q_CV
+    for _ in range(3):
+        for k in (1, 3, -1, -3):
+            for kf in (slow, fast):
+                reference = cv_filter()
+                reference.F, reference.Q = kf.F.copy(), kf.Q.copy()
+                expected = _explicit_lag(reference, other, k)
+                result = reference.fuse(other, lag=k)
+                np.testing.assert_allclose(result.P, expected.P, rtol=1e-12)
+                np.testing.assert_allclose(result.x, expected.x, rtol=1e-12, atol=1e-14)
+
+
+def test_lag_leaves_F_and_Q_alone_and_repeats_bitwise():
+    """The cache neither aliases nor changes the filter's matrices, and a repeated call
+    (a cache hit) gives bit for bit the first call's result."""
+    other = (np.array([0.2, 0.4]), np.array([[1.0, 0.2], [0.2, 0.6]]))
+    for k in (1, 2, -2):
+        kf = cv_filter()
+        kf.F[0, 1] = 1.0 + 0.1234 * k  # a model of this test's own: the first call misses
+        start, F, Q = (kf.x.copy(), kf.P.copy()), kf.F.copy(), kf.Q.copy()
+        first = kf.fuse(other, lag=k)
+        kf.x, kf.P = start
+        second = kf.fuse(other, lag=k)
+        for a, b in ((first.x, second.x), (first.P, second.P), (first.omega, second.omega)):
+            assert a.tobytes() == b.tobytes()
+        np.testing.assert_array_equal(kf.F, F)
+        np.testing.assert_array_equal(kf.Q, Q)
+        kf.F[0, 0] = 1.0  # still the filter's own writable array
+        assert kf.F.flags.writeable and kf.Q.flags.writeable
+
+
 def test_negative_lag_is_conservative_in_the_exact_worst_case():
     """With the weight all on the retrodicted estimate the fused P is its bound: in every
     direction v it dominates (sqrt(u^T P u) + sqrt(u^T Q_k u))^2, u = F^-kT v, the largest
@@ -244,3 +318,28 @@ def test_the_example_script_runs():
                                capture_output=True, text=True, timeout=120)
     assert completed.returncode == 0, completed.stdout + completed.stderr
     assert "fuse to 180.0 degrees" in completed.stdout
+
+
+# ------------------------------------------------------------------------ vector styles
+@pytest.mark.parametrize("own_shape", [(2, 1), (2,)])
+@pytest.mark.parametrize("criterion", ["trace", "det"])
+def test_other_in_either_vector_style_fuses_bit_for_bit_alike(own_shape, criterion):
+    """The filter layer gives an other estimate's (n,) or (n, 1) x the filter's own style
+    (a view) before the front door; the fused estimate is the same to the bit whichever
+    style the other came in, keeps the filter's style, and the other is not touched."""
+    x_other = np.array([0.2, 0.4])
+    P_other = np.array([[1.0, 0.2], [0.2, 0.6]])
+    results = []
+    for other_shape in ((2,), (2, 1)):
+        kf = cv_filter()
+        kf.x = kf.x.reshape(own_shape)
+        other = (x_other.reshape(other_shape).copy(), P_other.copy())
+        result = kf.fuse(other, criterion=criterion)
+        assert result.x.shape == own_shape and kf.x.shape == own_shape
+        assert other[0].shape == other_shape
+        np.testing.assert_array_equal(other[0].ravel(), x_other)
+        results.append(result)
+    first, second = results
+    for a, b in ((first.x, second.x), (first.P, second.P), (first.omega, second.omega)):
+        assert a.tobytes() == b.tobytes()
+    assert first.info == second.info
