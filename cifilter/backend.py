@@ -2,10 +2,11 @@
 
 Batched Covariance Intersection (optimal, given and fast weights) and the naive fusion
 have two implementations with the same contracts (the same validation and error messages,
-conditioning contract, certified gaps, ``converged`` flags and ``info`` keys, results equal
-to rounding): vectorised numpy, always available, and compiled kernels
-(``numba``, the optional extra: ``pip install ".[fast]"`` from a clone,
-``pip install "cifilter-fusion[fast]"`` once published), parallel over the batch.
+conditioning contract, certified gaps, ``converged`` flags and ``info`` keys, results that
+agree to the rounding bound of ``docs/backend.rst``, ties broken alike): vectorised numpy,
+always available, and compiled kernels (``numba``, the optional extra
+``pip install ".[fast]"`` from a clone, ``pip install "cifilter-fusion[fast]"`` once
+published), parallel over the batch.
 
 ``"auto"`` (the default) uses the kernels when numba is installed and the validated inputs
 (float64) are a batch of at least :data:`AUTO_MIN_BATCH` problems; ``"numpy"`` never does;

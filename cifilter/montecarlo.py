@@ -16,6 +16,7 @@ is asked for.
 import contextlib
 import math
 import numbers
+import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple, Optional, Union
 
@@ -258,7 +259,9 @@ def run(study: Callable[[np.random.Generator, int], dict[str, Any]], runs: int, 
     client : dask.distributed.Client or str, optional
         ``None`` (default) runs the chunks one after the other in this process; a
         ``Client`` runs them on its cluster; a string is a scheduler address
-        (``"tcp://host:8786"``) to connect to for the duration of the call.
+        (``"tcp://host:8786"``) to connect to for the duration of the call (within Dask's
+        connect timeout, ``distributed.comm.timeouts.connect``, else :class:`TimeoutError`;
+        see :func:`dask_client`).
     seed : int, numpy.random.SeedSequence, numpy.random.Generator or None, optional
         The root of the chunks' seeds. ``None`` draws fresh entropy (recorded in a
         :class:`MonteCarloError`); a Generator contributes entropy drawn from it.
@@ -288,6 +291,9 @@ def run(study: Callable[[np.random.Generator, int], dict[str, Any]], runs: int, 
         other than a dict (reported through :class:`MonteCarloError`).
     ValueError
         If ``runs`` or ``chunk_size`` is < 1 or ``seed`` is negative.
+    TimeoutError
+        If ``client`` is an address whose scheduler does not answer within Dask's connect
+        timeout.
     ImportError
         If ``client`` is given and ``dask.distributed`` is not installed.
 
@@ -353,12 +359,74 @@ def _import_distributed():
     return distributed
 
 
+def _check_timeout(timeout):
+    if isinstance(timeout, bool) or not isinstance(timeout, numbers.Real):
+        raise TypeError(f"timeout must be a number of seconds, got {type(timeout).__name__}")
+    if not (math.isfinite(timeout) and timeout > 0):
+        raise ValueError(f"timeout must be a positive number of seconds, got {timeout}")
+    return float(timeout)
+
+
+def _connect_timeout(distributed, timeout):
+    """Seconds to wait for a scheduler: ``timeout``, or Dask's connect timeout
+    (``distributed.comm.timeouts.connect``, 30 s unless configured)."""
+    if timeout is None:
+        import dask
+        from dask.utils import parse_timedelta
+
+        timeout = parse_timedelta(
+            dask.config.get("distributed.comm.timeouts.connect"), default="seconds")
+    return _check_timeout(timeout)
+
+
+def _check_scheduler_answers(distributed, address, timeout):
+    """Open a connection to ``address`` and complete Dask's handshake within ``timeout``
+    seconds, else raise :class:`TimeoutError`.
+
+    ``distributed.Client`` bounds the TCP connection by its timeout but then waits for the
+    scheduler's handshake without one, so an address that accepts connections and never
+    answers (a port held by another program, a wedged scheduler) made it wait forever. The
+    probe runs in a thread of its own (with its own event loop, so it also works where the
+    caller's thread runs one, as in a notebook) and is given up after ``timeout``.
+    """
+    import asyncio
+
+    outcome = {}  # what the probe raised
+
+    async def probe():
+        comm = await distributed.comm.connect(address, timeout=timeout)
+        await comm.close()
+
+    def target():
+        try:
+            asyncio.run(asyncio.wait_for(probe(), timeout))
+        except BaseException as error:  # reported to the caller's thread below
+            outcome["error"] = error
+
+    thread = threading.Thread(target=target, name="cifilter-scheduler-probe", daemon=True)
+    thread.start()
+    thread.join(timeout + 1.0)
+    error = outcome.get("error")
+    if thread.is_alive() or isinstance(error, (TimeoutError, asyncio.TimeoutError)):
+        raise TimeoutError(f"the Dask scheduler at {address!r} accepted the connection but "
+                           f"did not answer within {timeout:g} s")
+    if error is not None:
+        raise error
+
+
+def _connect(distributed, address, timeout):
+    """A Client connected to the scheduler at ``address``, within ``timeout`` seconds."""
+    timeout = _connect_timeout(distributed, timeout)
+    _check_scheduler_answers(distributed, address, timeout)
+    return distributed.Client(address, set_as_default=False, timeout=timeout)
+
+
 @contextlib.contextmanager
 def _as_client(client):
     """The given Client, or a connection to a scheduler address closed on exit."""
     distributed = _import_distributed()
     if isinstance(client, str):
-        connection = distributed.Client(client, set_as_default=False)
+        connection = _connect(distributed, client, None)
         try:
             yield connection
         finally:
@@ -381,30 +449,37 @@ def _run_on_dask(study, chunks, bar, client):
     try:
         for future in distributed.as_completed(list(futures), loop=client.loop):
             index, start, size, seed_sequence = futures[future]
-            if future.status == "finished":
-                completed[index] = future.result()
+            result, error = _settle(future)
+            if error is None:
+                completed[index] = result
                 bar.update(size)
                 continue
-            failed.append(ChunkFailure(index, start, size, seed_sequence,
-                                       _future_error(future)))
+            failed.append(ChunkFailure(index, start, size, seed_sequence, error))
     finally:  # only on an interruption (e.g. Ctrl-C) are there unfinished chunks
         client.cancel([f for f in futures if not f.done()])
     return completed, failed
 
 
-def _future_error(future):
+def _settle(future):
+    """``(result, None)`` of a chunk's future, or ``(None, error)``.
+
+    The status a future had when :func:`distributed.as_completed` yielded it is not
+    final: when a worker process dies, the results it held are lost and recomputed
+    elsewhere, so a chunk that had finished can be ``"lost"`` or ``"pending"`` for a while.
+    ``result()`` waits until it settles: the chunk's result, or what it raised (the study's
+    exception; ``KilledWorker`` for a chunk whose workers kept dying; a cancellation).
+    """
+    import concurrent.futures
+
     try:
-        error = future.exception()
-    except Exception as unreachable:
-        error = unreachable
-    if error is None:
-        error = RuntimeError(f"chunk ended with status {future.status!r}")
-    return error
+        return future.result(), None
+    except (Exception, concurrent.futures.CancelledError) as error:
+        return None, error
 
 
 @contextlib.contextmanager
-def dask_client(workers: Optional[int] = None,
-                scheduler: Optional[str] = None) -> Iterator[Optional["Client"]]:
+def dask_client(workers: Optional[int] = None, scheduler: Optional[str] = None, *,
+                timeout: Optional[float] = None) -> Iterator[Optional["Client"]]:
     """The Dask client for ``--workers N`` or ``--scheduler ADDRESS``, or None for neither.
 
     ``workers`` starts a :class:`distributed.LocalCluster` of that many worker processes
@@ -413,7 +488,9 @@ def dask_client(workers: Optional[int] = None,
     Dask's worker profiler off and without its 64 kB ``MALLOC_TRIM_THRESHOLD_`` (together
     they doubled the time of a chunk of small numpy operations); it is shut down on exit.
     ``scheduler`` connects to an existing cluster (left running on exit; its workers keep
-    their own configuration).
+    their own configuration); an address that does not answer within ``timeout`` is an
+    error, also when it accepts the connection and then stays silent (Dask's own client
+    would wait for its handshake forever).
 
     Parameters
     ----------
@@ -421,6 +498,10 @@ def dask_client(workers: Optional[int] = None,
         Number of local worker processes, >= 1.
     scheduler : str, optional
         Address of a running Dask scheduler, e.g. ``"tcp://10.0.0.5:8786"``.
+    timeout : float, optional
+        Seconds to wait for the scheduler to connect and answer (keyword only); default
+        Dask's connect timeout, ``distributed.comm.timeouts.connect`` (30 s unless
+        configured). Also used as the client's timeout.
 
     Yields
     ------
@@ -431,9 +512,14 @@ def dask_client(workers: Optional[int] = None,
     Raises
     ------
     ValueError
-        If both are given, ``workers < 1`` or ``scheduler`` is empty.
+        If both are given, ``workers < 1``, ``scheduler`` is empty or ``timeout`` is not
+        positive.
     TypeError
-        If ``workers`` is not an integer or ``scheduler`` not a string.
+        If ``workers`` is not an integer, ``scheduler`` not a string or ``timeout`` not a
+        number.
+    TimeoutError
+        If the scheduler does not connect and answer within ``timeout`` (an
+        :class:`OSError`, as are the errors of an address that refuses the connection).
     ImportError
         If a cluster is asked for and ``dask.distributed`` is not installed.
 
@@ -456,12 +542,14 @@ def dask_client(workers: Optional[int] = None,
             raise TypeError(f"scheduler must be an address string, got {type(scheduler).__name__}")
         if not scheduler.strip():
             raise ValueError("scheduler must be a non-empty address")
+    if timeout is not None:
+        timeout = _check_timeout(timeout)
     if workers is None and scheduler is None:
         yield None
         return
     distributed = _import_distributed()
     if scheduler is not None:
-        client = distributed.Client(scheduler, set_as_default=False)
+        client = _connect(distributed, scheduler, timeout)
         try:
             yield client
         finally:

@@ -2,7 +2,12 @@
 
 import functools
 import io
+import os
+import socket
+import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -21,6 +26,13 @@ def failing_study(rng, runs, bad_runs=7):
     """Fails in exactly the chunk whose size is ``bad_runs`` (the last one below)."""
     if runs == bad_runs:
         raise FloatingPointError("simulated divergence")
+    return {"x": rng.standard_normal(runs)}
+
+
+def dying_study(rng, runs, bad_runs=7):
+    """Kills the worker process that runs the chunk whose size is ``bad_runs``."""
+    if runs == bad_runs:
+        os._exit(3)
     return {"x": rng.standard_normal(runs)}
 
 
@@ -156,6 +168,11 @@ def test_bad_arguments_name_the_argument(kwargs, problem, name):
     ({"scheduler": ""}, ValueError),
     ({"scheduler": 8786}, TypeError),
     ({"workers": 1, "scheduler": "tcp://localhost:8786"}, ValueError),
+    ({"timeout": 0}, ValueError),
+    ({"timeout": -1.0, "scheduler": "tcp://localhost:8786"}, ValueError),
+    ({"timeout": float("nan")}, ValueError),
+    ({"timeout": "5"}, TypeError),
+    ({"timeout": True}, TypeError),
 ])
 def test_dask_client_argument_errors(kwargs, problem):
     with pytest.raises(problem):
@@ -286,3 +303,118 @@ def test_local_process_cluster_from_workers_argument():
         cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
     np.testing.assert_array_equal(there["nees"], here["nees"])
     np.testing.assert_array_equal(there["errors"], here["errors"])
+
+
+def test_a_dying_worker_ends_in_monte_carlo_error_with_the_finished_chunks(monkeypatch):
+    """The study kills its worker process (``os._exit``) in one chunk: Dask retries the
+    chunk on a restarted worker until it gives up (``KilledWorker``; one retry allowed
+    here instead of Dask's three, to keep the test short), and the study ends in
+    MonteCarloError naming that chunk, with every other chunk finished and kept, bit for
+    bit the in-process numbers."""
+    pytest.importorskip("distributed")
+    cloudpickle = pytest.importorskip("cloudpickle")
+    import dask
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    try:
+        with dask.config.set({"distributed.scheduler.allowed-failures": 1}), \
+                montecarlo.dask_client(workers=2) as client:
+            with pytest.raises(montecarlo.MonteCarloError) as caught:
+                montecarlo.run(dying_study, 47, chunk_size=10, seed=11, progress=False,
+                               client=client)
+    finally:
+        cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+    error = caught.value
+    assert "chunk 4 of 5" in str(error) and "spawn_key=(4,)" in str(error)
+    assert [failure.index for failure in error.failed] == [4]
+    assert type(error.failed[0].error).__name__ == "KilledWorker"
+    assert sorted(error.completed) == [0, 1, 2, 3] and error.not_run == []
+    children = np.random.SeedSequence(11).spawn(5)
+    expected = np.concatenate([np.random.default_rng(children[k]).standard_normal(10)
+                               for k in range(4)])
+    np.testing.assert_array_equal(error.partial["x"], expected)
+    np.testing.assert_array_equal(error.partial_runs, np.arange(40))
+
+
+@pytest.fixture
+def silent_scheduler():
+    """A TCP port that accepts connections and never sends a byte (a wedged scheduler, or
+    another program on Dask's port): its address."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    held = []
+
+    def accept():
+        while True:
+            try:
+                connection, _ = server.accept()
+            except OSError:
+                return
+            held.append(connection)
+
+    threading.Thread(target=accept, daemon=True).start()
+    yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    server.close()
+    for connection in held:
+        connection.close()
+
+
+def _within(seconds, call):
+    """``call()`` in a thread: what it raised, or AssertionError if it is still running
+    after ``seconds`` (it hung: the thread is left behind, a daemon)."""
+    outcome = {}
+
+    def target():
+        try:
+            call()
+        except BaseException as error:
+            outcome["error"] = error
+
+    thread = threading.Thread(target=target, daemon=True)
+    start = time.perf_counter()
+    thread.start()
+    thread.join(seconds)
+    assert not thread.is_alive(), f"still waiting after {seconds} s"
+    return outcome.get("error"), time.perf_counter() - start
+
+
+def test_a_scheduler_that_accepts_and_never_answers_is_given_up(silent_scheduler):
+    """Issue 21, item 6: Dask's client waits for the scheduler's handshake without a
+    timeout, so an address that accepts and stays silent made ``dask_client`` and
+    ``run(client=address)`` wait forever."""
+    pytest.importorskip("distributed")
+    import dask
+
+    def connect():
+        with montecarlo.dask_client(scheduler=silent_scheduler, timeout=1.0):
+            pass
+
+    error, elapsed = _within(20, connect)
+    assert isinstance(error, TimeoutError) and isinstance(error, OSError)
+    assert silent_scheduler in str(error) and "did not answer within 1 s" in str(error)
+    assert elapsed < 10
+
+    def run():
+        with dask.config.set({"distributed.comm.timeouts.connect": "1s"}):
+            montecarlo.run(gaussian_study, 10, client=silent_scheduler, progress=False)
+
+    error, elapsed = _within(20, run)
+    assert isinstance(error, TimeoutError) and elapsed < 10
+
+
+def test_the_command_line_gives_up_a_silent_scheduler_in_one_line(silent_scheduler):
+    """``demo --scheduler`` at such an address: a one-line error and exit status 2 within
+    the command line's scheduler timeout (5 s), instead of waiting forever."""
+    pytest.importorskip("distributed")
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "cifilter", "demo", "--scheduler",
+                           silent_scheduler, "--runs", "2", "--steps", "3"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert done.stdout == ""
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr
+    assert lines[0].startswith("python -m cifilter demo: error: --scheduler: ")
+    assert silent_scheduler in lines[0] and "did not answer within 5 s" in lines[0]
+    assert time.perf_counter() - start < 30

@@ -17,6 +17,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .._numerics.criteria import GAP_TOL, SLOPE_ROUNDING
 from .._numerics.information import DIAGONAL_TRUST
 
 KIND_TRACE, KIND_DET, KIND_WEIGHTED, KIND_NONE = 0, 1, 2, 3
@@ -205,6 +206,46 @@ def _pair_derivative(omega, a, ca, n, kind):
 
 
 @_jit
+def _slope_rounding(lam, omega, c, n, kind, sigma):
+    """``_criteria.slope_rounding`` of one problem: the bound of the slope's rounding."""
+    total = 0.0
+    for k in range(n):
+        D = 1.0 + omega * (lam[k] - 1.0)
+        if kind == KIND_DET:
+            total += 1.0 / (D * D)
+        else:
+            total += abs(c[k]) * abs((2.0 * lam[k] - 1.0) * D
+                                     - 2.0 * omega * lam[k] * (lam[k] - 1.0)) / (D * D * D)
+    return SLOPE_ROUNDING * n * _EPS * sigma * total
+
+
+@_jit
+def _rounding_scale(L1i, P2, n):
+    """``_criteria.rounding_scale`` of one problem: ``||L_1^-1||_F^2 ||P_2||_F``."""
+    a = 0.0
+    b = 0.0
+    for i in range(n):
+        for j in range(n):
+            a = max(a, abs(L1i[i, j]))
+            b = max(b, abs(P2[i, j]))
+    na = 0.0
+    nb = 0.0
+    for i in range(n):
+        for j in range(n):
+            t = L1i[i, j] / a
+            na += t * t
+            t = P2[i, j] / b
+            nb += t * t
+    return (a * a * b) * na * math.sqrt(nb)
+
+
+@_jit
+def _interval_gap(t, slope):
+    """``_optimize.interval_gap``."""
+    return 0.5 * (abs(slope) + (2.0 * t - 1.0) * slope)
+
+
+@_jit
 def _minimize_interval(a, ca, n, kind, scale):
     """``_optimize.minimize_convex_interval`` for one problem: (omega, iterations)."""
     g0, _ = _pair_derivative(0.0, a, ca, n, kind)
@@ -268,8 +309,8 @@ def _report(P, R, W, n, kind, out_value, out_log, b):
 
 
 @_jit
-def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, out_K,
-               out_value, out_log, out_status, work2, work1):
+def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out_computed,
+               out_x, out_P, out_K, out_value, out_log, out_status, work2, work1):
     """One item of :func:`ci_pair_optimal` (``work*``: its scratch arrays)."""
     n = x.shape[2]
     L1i = work2[0]
@@ -349,17 +390,38 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, 
             tr2 += c[k] * (a[k] + 1.0)
             tr1 += c[k]
         scale = tr2 + tr1
+    # The rounding of the slope (``_criteria.slope_rounding``, the numpy path's bound).
+    sigma = max(lam_hi, _rounding_scale(L1i, P[b, 1], n))
+    # A tie to rounding: f' within its rounding of zero at both ends (e.g. P_1 = P_2,
+    # whose computed eigenvalues are 1 + O(cond eps)). Which end, or the flat 1/2, the
+    # interval search then takes depends on the sign of rounding noise, which differs
+    # between the Jacobi eigenvalues here and LAPACK's: the numpy path decides (1/2), so
+    # that both backends break the tie alike.
+    g0, _ = _pair_derivative(0.0, a, ca, n, kind)
+    g1, _ = _pair_derivative(1.0, a, ca, n, kind)
+    if (abs(g0) <= _slope_rounding(lam, 0.0, c, n, kind, sigma)
+            and abs(g1) <= _slope_rounding(lam, 1.0, c, n, kind, sigma)):
+        out_status[b] = 3
+        return
     omega, iterations = _minimize_interval(a, ca, n, kind, scale)
     if not math.isfinite(omega):
         omega = 0.5
     slope, _ = _pair_derivative(omega, a, ca, n, kind)
-    gap = 0.5 * (abs(slope) + (2.0 * omega - 1.0) * slope)
+    # the certificate of the numpy path (``_criteria.pair_certificate``)
+    rounding = _slope_rounding(lam, omega, c, n, kind, sigma)
+    product = 2.0 * _EPS * (abs(slope) + rounding)
+    gap = max(_interval_gap(omega, slope - rounding),
+              _interval_gap(omega, slope + rounding)) + product
+    computed = _interval_gap(omega, slope)
+    floor = rounding + product
     if kind != KIND_DET:
         value = 0.0
         for k in range(n):
             value += c[k] * (a[k] + 1.0) / (1.0 + omega * a[k])
         gap = gap / value
-    if not math.isfinite(gap):
+        computed = computed / value
+        floor = floor / value
+    if not gap <= GAP_TOL:  # not certified here (or not finite): the numpy path decides
         out_status[b] = 1
         return
     # assembly (_fuse_diagonalised): K1 = omega T diag(e) (U^T L1^-1)
@@ -410,6 +472,8 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, 
     out_omega[b] = omega
     out_iter[b] = iterations
     out_gap[b] = gap
+    out_floor[b] = floor
+    out_computed[b] = computed
     if kind != KIND_NONE and not _report(Pf, R, W, n, kind, out_value, out_log, b):
         out_status[b] = 2
         return
@@ -417,14 +481,16 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, 
 
 
 @_jit_parallel
-def ci_pair_optimal(x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, out_K,
-                    out_value, out_log, out_status):
+def ci_pair_optimal(x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out_computed,
+                    out_x, out_P, out_K, out_value, out_log, out_status):
     """Criterion-optimal CI of two estimates per item (``_ci_weights._diagonalised_weights``
-    and ``_fuse_diagonalised``), with the criterion report of the fused covariance.
+    and ``_fuse_diagonalised``), with the criterion report of the fused covariance and the
+    certificate's parts (``_criteria.pair_certificate``: gap, floor, computed gap).
 
-    ``out_status``: 0 done; 1 the diagonalisation is not trusted (the numpy path certifies
-    and re-solves from Cholesky factors); 2 the fused covariance is not numerically
-    positive definite.
+    ``out_status``: 0 done; 1 the diagonalisation is not trusted or does not certify the
+    tolerance (the numpy path certifies and re-solves from Cholesky factors); 2 the fused
+    covariance is not numerically positive definite; 3 a tie to rounding (the numpy path
+    breaks it).
     """
     size = x.shape[0]
     n = x.shape[2]
@@ -433,25 +499,27 @@ def ci_pair_optimal(x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P
         work2 = np.empty((10, n, n))
         work1 = np.empty((5, n))
         for b in range(chunk * _CHUNK, min(size, (chunk + 1) * _CHUNK)):
-            _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P,
-                       out_K, out_value, out_log, out_status, work2, work1)
+            _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor,
+                       out_computed, out_x, out_P, out_K, out_value, out_log, out_status,
+                       work2, work1)
 
 
 @_jit
-def ci_pair_optimal_serial(x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P,
-                           out_K, out_value, out_log, out_status):
+def ci_pair_optimal_serial(x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor,
+                           out_computed, out_x, out_P, out_K, out_value, out_log, out_status):
     """:func:`ci_pair_optimal` without threads (small batches)."""
     n = x.shape[2]
     work2 = np.empty((10, n, n))
     work1 = np.empty((5, n))
     for b in range(x.shape[0]):
-        _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_x, out_P, out_K,
-                   out_value, out_log, out_status, work2, work1)
+        _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor,
+                   out_computed, out_x, out_P, out_K, out_value, out_log, out_status,
+                   work2, work1)
 
 
 @_jit
-def _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_log,
-                   out_status, work2, work1, work3):
+def _weighted_item(b, x, L, weights, references, W, kind, out_x, out_P, out_K, out_value,
+                   out_log, out_status, work2, work1, work3):
     """One item of :func:`weighted_fusion` (``work*``: its scratch arrays)."""
     count = x.shape[1]
     n = x.shape[2]
@@ -481,10 +549,7 @@ def _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value, ou
         out_status[b] = 1
         return
     _lower_inverse(R, Ri, n)
-    reference = 0
-    for k in range(1, count):
-        if weights[b, k] > weights[b, reference]:
-            reference = k
+    reference = references[b]
     for i in range(n):
         for j in range(n):
             rem[i, j] = 1.0 if i == j else 0.0
@@ -541,10 +606,13 @@ def _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value, ou
 
 
 @_jit_parallel
-def weighted_fusion(x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_log,
-                    out_status):
+def weighted_fusion(x, L, weights, references, W, kind, out_x, out_P, out_K, out_value,
+                    out_log, out_status):
     """``_information.weighted_fusion`` per item (any N, given weights), with the criterion
     report of the fused covariance unless ``kind`` is ``KIND_NONE``.
+
+    ``references`` (int64, per item): the estimate whose gain is ``I`` minus the others
+    (``_information.reference_estimates``, computed by the caller).
 
     ``out_status``: 0 done; 1 the fused information is not numerically positive definite;
     2 the fused covariance is not.
@@ -557,18 +625,18 @@ def weighted_fusion(x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_
         work1 = np.empty((1, n))
         work3 = np.empty((x.shape[1], n, n))
         for b in range(chunk * _CHUNK, min(size, (chunk + 1) * _CHUNK)):
-            _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value,
-                           out_log, out_status, work2, work1, work3)
+            _weighted_item(b, x, L, weights, references, W, kind, out_x, out_P, out_K,
+                           out_value, out_log, out_status, work2, work1, work3)
 
 
 @_jit
-def weighted_fusion_serial(x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_log,
-                           out_status):
+def weighted_fusion_serial(x, L, weights, references, W, kind, out_x, out_P, out_K,
+                           out_value, out_log, out_status):
     """:func:`weighted_fusion` without threads (small batches)."""
     n = x.shape[2]
     work2 = np.empty((8, n, n))
     work1 = np.empty((1, n))
     work3 = np.empty((x.shape[1], n, n))
     for b in range(x.shape[0]):
-        _weighted_item(b, x, L, weights, W, kind, out_x, out_P, out_K, out_value, out_log,
-                       out_status, work2, work1, work3)
+        _weighted_item(b, x, L, weights, references, W, kind, out_x, out_P, out_K,
+                       out_value, out_log, out_status, work2, work1, work3)

@@ -11,7 +11,8 @@ error for them, so results, ``info`` and errors are those of the numpy path.
 
 import numpy as np
 
-from .._numerics.criteria import GAP_TOL, criterion_report
+from .._numerics.criteria import criterion_report, gap_converged
+from .._numerics.information import reference_estimates
 from .._numerics.validation import Estimates
 from ..backend import use_kernels
 
@@ -60,6 +61,15 @@ def _flat_criterion(W, shape, size, n):
     return Wb, lambda index: Wb[index]
 
 
+def _rows(est, x, P, L, index):
+    """The problems ``index`` of the flattened batch as estimates for the numpy path; one
+    problem without batch axes stays without them, so that it takes the numpy path's own
+    single-problem route (as under the numpy backend) and gets the same rounding."""
+    if not est.batch_shape:
+        return Estimates(x[0], P[0], L[0], est.column)
+    return Estimates(x[index], P[index], L[index], est.column)
+
+
 def _report(kind, value, log_value, shape):
     report = {"value": value.reshape(shape)}
     if kind == "det":
@@ -80,25 +90,28 @@ def optimal_pair(est, kind, W, numpy_path):
     shape, n = est.batch_shape, est.dim
     x, P, L = _flat(est, size)
     Wk, sub_W = _flat_criterion(W, shape, size, n)
-    omega, gap, value, log_value = (np.empty(size) for _ in range(4))
+    omega, gap, floor, computed, value, log_value = (np.empty(size) for _ in range(6))
     iterations = np.zeros(size, dtype=int)
     status = np.empty(size, dtype=np.int8)
     x_out, P_out, gains = np.empty((size, n)), np.empty((size, n, n)), np.empty((size, 2, n, n))
-    _kernel("ci_pair_optimal", size)(x, P, L, Wk, _KINDS[kind], omega, iterations, gap, x_out,
-                              P_out, gains, value, log_value, status)
+    _kernel("ci_pair_optimal", size)(x, P, L, Wk, _KINDS[kind], omega, iterations, gap, floor,
+                                     computed, x_out, P_out, gains, value, log_value, status)
     weights = np.stack([omega, 1.0 - omega], axis=-1)
+    converged = gap_converged(gap, floor, computed)
     index = np.flatnonzero(status)
     if index.size:
-        sub = Estimates(x[index], P[index], L[index], est.column)
+        sub = _rows(est, x, P, L, index)
         w_s, info_s, (x_s, P_s, K_s) = numpy_path(sub, sub_W(index))
         report_s = criterion_report(P_s, kind, sub_W(index))
-        weights[index], iterations[index], gap[index] = w_s, info_s["iterations"], info_s["gap"]
+        weights[index], iterations[index] = w_s, info_s["iterations"]
+        gap[index], floor[index] = info_s["gap"], info_s["gap_floor"]
+        converged[index] = info_s["converged"]
         x_out[index], P_out[index], gains[index] = x_s, P_s, K_s
         value[index] = report_s["value"]
         if kind == "det":
             log_value[index] = report_s["log_value"]
-    gap = gap.reshape(shape)
-    info = {"iterations": iterations.reshape(shape), "converged": gap <= GAP_TOL, "gap": gap,
+    info = {"iterations": iterations.reshape(shape), "converged": converged.reshape(shape),
+            "gap": gap.reshape(shape), "gap_floor": floor.reshape(shape),
             "solver": "diagonalise"}
     result = (x_out.reshape(shape + (n,)), P_out.reshape(shape + (n, n)),
               gains.reshape(shape + (2, n, n)))
@@ -124,11 +137,16 @@ def weighted(est, weights, kind, W, numpy_path):
     status = np.empty(size, dtype=np.int8)
     x_out, P_out = np.empty((size, n)), np.empty((size, n, n))
     gains = np.empty((size, count, n, n))
-    _kernel("weighted_fusion", size)(x, L, w, Wk, _KINDS[kind], x_out, P_out, gains, value,
-                              log_value, status)
+    # the numpy path's reference estimate (the remainder's gain), so that both round alike
+    references = np.ascontiguousarray(reference_estimates(w, L), dtype=np.int64)
+    _kernel("weighted_fusion", size)(x, L, w, references, Wk, _KINDS[kind], x_out, P_out,
+                                     gains, value, log_value, status)
     index = np.flatnonzero(status)
     if index.size:
-        fused = numpy_path(x[index], L[index], w[index])
+        if est.batch_shape:
+            fused = numpy_path(x[index], L[index], w[index])
+        else:  # one problem: the numpy path's own single-problem route
+            fused = numpy_path(x[0], L[0], w[0])
         x_out[index], P_out[index], gains[index] = fused.x, fused.P, fused.gains
         if kind is not None:
             report_s = criterion_report(fused.P, kind, sub_W(index))

@@ -44,7 +44,9 @@ __all__ = [
     "diagonal_spread_squared",
     "information_factors",
     "information_matrices",
+    "log_det_curvature",
     "lower_inverse_stack",
+    "reference_estimates",
     "single_diagonalisation_trusted",
     "squared_norms",
     "trace_curvature",
@@ -224,6 +226,23 @@ def information_factors(L_inv, weights, *, failures="raise"):
     return InformationFactors(R, R_inv, B, C)
 
 
+def reference_estimates(weights, L):
+    """The estimate whose gain is ``I`` minus the others, per problem (int, shape (...,)).
+
+    The most precise weighted estimate: the first of largest ``w_i / trace(P_i)`` among
+    those of positive weight (``trace(P_i) = ||L_i||_F^2``). The remainder's rounding, of
+    order ``eps`` times the other gains, enters the bound of the gains multiplied by the
+    reference's own covariance (``dK_r P_r dK_r^T / w_r``); the estimate of largest weight
+    can be the least precise one (equal weights, covariances of very different scales),
+    and then that term is as large as ``P`` itself. The compiled kernels take the same
+    choice (``_kernels/dispatch.py``), so both backends agree (``docs/backend.rst``).
+    """
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        precision = weights / np.einsum("...kij,...kij->...k", L, L)
+        precision = np.where(weights > 0.0, np.nan_to_num(precision, nan=0.0), -1.0)
+    return np.argmax(precision, axis=-1)
+
+
 def weighted_fusion(x, L, weights, L_inv=None, factors=None):
     """Fuse estimates in information form with scalar weights (see the module docstring).
 
@@ -246,8 +265,9 @@ def weighted_fusion(x, L, weights, L_inv=None, factors=None):
     -------
     WeightedFusion
         ``x``, ``P`` (the bound of the returned gains), ``gains`` (exactly
-        ``I - sum`` of the others for the estimate of largest weight, so that they sum to
-        the identity to rounding), and the information ``factors`` at the weights.
+        ``I - sum`` of the others for the most precise weighted estimate,
+        :func:`reference_estimates`, so that they sum to the identity to rounding), and the
+        information ``factors`` at the weights.
 
     Raises
     ------
@@ -263,10 +283,10 @@ def weighted_fusion(x, L, weights, L_inv=None, factors=None):
     B = factors.B
     n, count = x.shape[-1], x.shape[-2]
     # K_i = w_i P P_i^-1 = w_i B_i L_i^-1. The gains sum to I in exact arithmetic; make it
-    # hold to rounding by giving the estimate of largest weight the remainder, so that the
-    # fused mean is unbiased and the error is exactly sum_i K_i e_i, the quantity the bound
-    # below is about.
-    reference = np.argmax(weights, axis=-1)
+    # hold to rounding by giving the most precise weighted estimate the remainder, so that
+    # the fused mean is unbiased and the error is exactly sum_i K_i e_i, the quantity the
+    # bound below is about.
+    reference = reference_estimates(weights, L)
     gains = np.empty(B.shape)
     remainder = np.broadcast_to(np.eye(n), B.shape[:-3] + (n, n)).copy()
     for k in range(count):
@@ -299,7 +319,7 @@ def _single_weighted_fusion(x, L, weights, L_inv, factors):
     bound, with Python control flow instead of masks over a batch."""
     count, n = x.shape
     w = weights.tolist()
-    reference = w.index(max(w))
+    reference = int(reference_estimates(weights, L))
     gains = np.empty((count, n, n))
     remainder = np.eye(n)
     x_ref = x[reference]
@@ -330,11 +350,31 @@ def trace_curvature(factors, W=None):
     """``Tr(W P P_i^-1 P P_j^-1 P)`` for every pair (i, j), shape (..., N, N).
 
     With ``P P_i^-1 P = B_i B_i^T`` and ``L_i^-1 P L_j^-T = C_i^T C_j`` it is
-    ``Tr(B_i^T W B_j C_j^T C_i)``: the Hessian factor of ``Tr(W P(w))`` in the weights
-    (CI: ``2 x`` this; partial CI: with the chain rule of eq. (24)). ``W = None`` is ``I``.
+    ``Tr(B_i^T W B_j C_j^T C_i) = <B_i C_i^T, W B_j C_j^T>_F``: the Gram matrix of the N
+    products ``B_i C_i^T`` (n x n each) against ``W B_j C_j^T``, one matrix product of
+    (N, n^2) by (n^2, N) after N small ones, O(N n^3 + N^2 n^2) instead of the
+    O(N^2 n^3) of forming every ``B_i^T W B_j`` and ``C_j^T C_i``. The Hessian factor of
+    ``Tr(W P(w))`` in the weights (CI: ``2 x`` this; partial CI: with the chain rule of
+    eq. (24)). ``W = None`` is ``I`` (then the result is a Gram matrix, positive
+    semidefinite by construction).
     """
     B, C = factors.B, factors.C
-    WB = B if W is None else W[..., None, :, :] @ B
-    BtWB = np.einsum("...iab,...jac->...ijbc", B, WB)  # B_i^T W B_j
-    CtC = np.einsum("...iab,...jac->...ijbc", C, C)  # C_i^T C_j
-    return np.einsum("...ijbc,...jicb->...ij", BtWB, CtC)
+    Ct = C.swapaxes(-1, -2)
+    left = B @ Ct  # B_i C_i^T
+    right = left if W is None else (W[..., None, :, :] @ B) @ Ct
+    flat = left.shape[:-2] + (-1,)
+    return left.reshape(flat) @ right.reshape(flat).swapaxes(-1, -2)
+
+
+def log_det_curvature(factors):
+    """``||C_i^T C_j||_F^2 = Tr(P P_i^-1 P P_j^-1)`` for every pair (i, j), shape (..., N, N):
+    the Hessian of ``log det P(w)`` in the weights.
+
+    ``||C_i^T C_j||_F^2 = <C_i C_i^T, C_j C_j^T>_F``: the Gram matrix of the N products
+    ``C_i C_i^T``, O(N n^3 + N^2 n^2) (as :func:`trace_curvature`), positive semidefinite by
+    construction.
+    """
+    C = factors.C
+    G = C @ C.swapaxes(-1, -2)
+    flat = G.reshape(G.shape[:-2] + (-1,))
+    return flat @ flat.swapaxes(-1, -2)

@@ -14,12 +14,25 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._kernels import dispatch as kernels
-from .._numerics.criteria import GAP_TOL, certified_gap, criterion_gradient, criterion_of_factor
+from .._numerics.criteria import (
+    GAP_TOL,
+    GapCertificate,
+    criterion_gradient,
+    criterion_of_factor,
+    gap_certificate,
+    gap_converged,
+    gradient_rounding,
+    pair_certificate,
+    rounding_scale,
+    slope_rounding,
+    slope_rounding_single,
+)
 from .._numerics.information import (
     DIAGONAL_TRUST,
     diagonal_spread_squared,
     information_factors,
     information_matrices,
+    log_det_curvature,
     lower_inverse_stack,
     single_diagonalisation_trusted,
     squared_norms,
@@ -34,7 +47,6 @@ from .._numerics.linalg import (
     symmetrize,
 )
 from .._numerics.optimize import (
-    interval_gap,
     minimize_convex_interval,
     minimize_convex_scalar,
     minimize_convex_simplex,
@@ -103,6 +115,8 @@ class _Diagonalised(NamedTuple):
     iterations: np.ndarray  # (...,)
     trusted: np.ndarray  # (...,) bool: accurate enough to certify and assemble from
     gap: np.ndarray  # (...,) certified gap from the diagonal form (valid where trusted)
+    floor: np.ndarray  # (...,) its rounding floor (valid where trusted)
+    computed: np.ndarray  # (...,) the gap of the computed slope (valid where trusted)
     lam: np.ndarray  # (..., n) generalised eigenvalues of (P_2, P_1)
     U: np.ndarray  # (..., n, n) eigenvectors of L_1^-1 P_2 L_1^-T
     T: np.ndarray  # (..., n, n) L_1 U: P_1 = T T^T, P_2 = T diag(lam) T^T
@@ -117,10 +131,13 @@ def _diagonalised_weights(est, kind, W, L1_inv):
     log det P = log det P_1 + sum_k log(d_k / lam_k) + const. Both are convex in omega;
     the derivative is closed-form and its root is found by safeguarded Newton iterations,
     O(n) per iteration. With ``w = (omega, 1 - omega)`` the certified gap
-    (:func:`certified_gap`) is ``omega max(f', 0) + (1 - omega) max(-f', 0)``.
+    is ``omega max(f', 0) + (1 - omega) max(-f', 0)``, taken at the worse of the slopes
+    ``f' +- e``, ``e`` the bound of its rounding (:func:`slope_rounding`).
     The eigenvalues ``lam`` are those of a matrix whose condition number is up to
     cond(P_1) cond(P_2), so for ill-conditioned pairs they are rounding noise: such
-    problems are not ``trusted`` and the caller solves them from Cholesky factors.
+    problems are not ``trusted`` and the caller solves them from Cholesky factors; so are
+    those whose gap the rounding of the eigenvalues keeps above the tolerance (certified
+    again from Cholesky factors, whose rounding is usually far smaller).
     """
     S = symmetrize(L1_inv @ est.P[..., 1, :, :] @ L1_inv.swapaxes(-1, -2))
     lam, U = np.linalg.eigh(S)
@@ -153,19 +170,41 @@ def _diagonalised_weights(est, kind, W, L1_inv):
     with np.errstate(all="ignore"):  # noise eigenvalues: such problems are not trusted
         omega, iterations, _ = minimize_convex_interval(derivatives, size, scale=scale)
         omega = np.where(usable & np.isfinite(omega), omega, 0.5)
-        slope, _ = derivatives(omega, np.arange(size))
-        gap = interval_gap(omega, slope)
-        if kind != "det":
-            gap = gap / (c * (a + 1.0) / (1.0 + omega[:, None] * a)).sum(axis=-1)
         spread = lam_flat.max(axis=-1) / lam_flat.min(axis=-1)
+        sigma = np.maximum(lam_flat.max(axis=-1),
+                           rounding_scale(L1_inv, est.P[..., 1, :, :]).reshape(size))
+        lam_used = np.where(usable[:, None], lam_flat, 1.0)
+        c_used = None if kind == "det" else c
+        # A tie to rounding (the slope within its rounding of zero at both ends, e.g.
+        # P_1 = P_2): every omega is optimal to the precision of the inputs, and the end
+        # the search would take is decided by the sign of rounding noise, which differs
+        # between eigensolvers (LAPACK's here, the kernel's Jacobi rotations) and batch
+        # routes. Such problems get omega = 1/2 (the compiled kernel hands them back here).
+        index = np.arange(size)
+        ends = [(np.full(size, end), derivatives(np.full(size, end), index)[0])
+                for end in (0.0, 1.0)]
+        tie = usable & np.logical_and.reduce(
+            [np.abs(g_end) <= slope_rounding(lam_used, w_end, c_used, sigma)
+             for w_end, g_end in ends])
+        omega = np.where(tie, 0.5, omega)
+        iterations = np.where(tie, 0, iterations)
+        slope, _ = derivatives(omega, index)
+        rounding = slope_rounding(lam_used, omega, c_used, sigma)
+        cert = pair_certificate(omega, slope, rounding,
+                                None if kind == "det" else
+                                (c * (a + 1.0) / (1.0 + omega[:, None] * a)).sum(axis=-1))
     conditioning = np.maximum(diagonal_spread_squared(est.L[..., 0, :, :]),
                               diagonal_spread_squared(est.L[..., 1, :, :])).reshape(size)
     trusted = (usable & (spread <= DIAGONAL_TRUST) & (conditioning <= DIAGONAL_TRUST)
-               & np.isfinite(gap))
+               & (cert.gap <= GAP_TOL))
     shape = est.batch_shape
+
+    def kept(values):
+        return np.where(trusted, values, np.inf).reshape(shape)
+
     return _Diagonalised(omega.reshape(shape), iterations.reshape(shape),
-                         trusted.reshape(shape), np.where(trusted, gap, np.inf).reshape(shape),
-                         lam, U, T)
+                         trusted.reshape(shape), kept(cert.gap), kept(cert.floor),
+                         kept(cert.computed), lam, U, T)
 
 
 def _fuse_diagonalised(est, L1_inv, d, weights):
@@ -264,8 +303,7 @@ def _simplex_weights(L_inv, kind, W, count, shape):
         f = criterion_of_factor(factors.R_inv, kind, Wi)
         g = criterion_gradient(factors, kind, Wi)
         if kind == "det":
-            CtC = np.einsum("...iab,...jac->...ijbc", factors.C, factors.C)  # C_i^T C_j
-            H = np.einsum("...ijbc,...ijbc->...ij", CtC, CtC)
+            H = log_det_curvature(factors)
         else:
             H = 2.0 * trace_curvature(factors, Wi)
         return f, -g, symmetrize(H)
@@ -334,6 +372,8 @@ def _single_pair(est, kind, W):
         return None
     T = L1 @ U
     a = [value - 1.0 for value in lam_list]
+    if -1.0 in a:  # an eigenvalue below eps: 1 + omega a is 0 at omega = 1 (batched path)
+        return None
     if kind == "det":
         c, scale = None, float(len(a))
     else:
@@ -341,12 +381,23 @@ def _single_pair(est, kind, W):
              else np.einsum("ik,ij,jk->k", T, W, T)).tolist()
         scale = sum(ck * (ak + 1.0) for ck, ak in zip(c, a)) + sum(c)
     derivative = _pair_derivative(a, c, kind)
-    omega, iterations, _ = minimize_convex_scalar(derivative, scale=scale)
+    inverse, covariance = L1_inv.ravel(), est.P[1].ravel()
+    with np.errstate(over="ignore", under="ignore"):
+        spread = float(inverse @ inverse) * math.sqrt(float(covariance @ covariance))
+    if not math.isfinite(spread):  # beyond about 1e150: scaled norms
+        spread = float(rounding_scale(L1_inv, est.P[1]))
+    sigma = max(lam_list[-1], spread)
+    if (abs(derivative(0.0)[0]) <= slope_rounding_single(lam_list, 0.0, c, sigma)
+            and abs(derivative(1.0)[0]) <= slope_rounding_single(lam_list, 1.0, c, sigma)):
+        omega, iterations = 0.5, 0  # a tie to rounding (_diagonalised_weights)
+    else:
+        omega, iterations, _ = minimize_convex_scalar(derivative, scale=scale)
     slope, _ = derivative(omega)
-    gap = interval_gap(omega, slope)
-    if kind != "det":
-        gap /= sum(ck * (ak + 1.0) / (1.0 + omega * ak) for ck, ak in zip(c, a))
-    if not math.isfinite(gap):
+    rounding = slope_rounding_single(lam_list, omega, c, sigma)
+    value = (None if kind == "det"
+             else sum(ck * (ak + 1.0) / (1.0 + omega * ak) for ck, ak in zip(c, a)))
+    gap, floor, computed = pair_certificate(float(omega), float(slope), rounding, value)
+    if not gap <= GAP_TOL:  # not certified here: the Cholesky-based path decides
         return None
     # Assembly as in _fuse_diagonalised: K_1 = omega T diag(e) U^T L_1^-1, K_2 = I - K_1,
     # P = K_1 P_1 K_1^T / omega + K_2 P_2 K_2^T / (1 - omega), the bound of these gains.
@@ -373,8 +424,9 @@ def _single_pair(est, kind, W):
     x1, x2 = est.x
     x = x2 + K1 @ (x1 - x2)
     weights = np.array([omega, 1.0 - omega])
-    info = {"iterations": np.array(iterations), "converged": np.array(gap <= GAP_TOL),
-            "gap": np.array(gap), "solver": "diagonalise"}
+    info = {"iterations": np.array(iterations),
+            "converged": np.array(gap_converged(float(gap), float(floor), float(computed))),
+            "gap": np.array(gap), "gap_floor": np.array(floor), "solver": "diagonalise"}
     return weights, info, (x, 0.5 * (P + P.T), gains)
 
 
@@ -388,7 +440,9 @@ def optimal_weights(est, kind, W, method="auto", L_inv=None, *, report=False,
     fails, solved again by the Cholesky-based interval method. N > 2 (``"simplex"``): the
     active-set Newton method on the simplex. The fused estimate is the bound of the
     returned gains in both cases (see ``_information``); ``info`` has ``iterations``,
-    ``converged`` (certified gap at most ``GAP_TOL``), ``gap`` and ``solver``.
+    ``converged`` (:func:`cifilter._numerics.criteria.gap_converged`: optimal to the
+    precision the inputs allow), ``gap`` (the certified gap, rounding included),
+    ``gap_floor`` (its part due to the rounding of the inputs) and ``solver``.
 
     With ``report=True`` a fourth item is returned: the criterion report of ``P``
     (:func:`cifilter._numerics.criteria.criterion_report`) where the compiled kernels computed it,
@@ -419,7 +473,7 @@ def _optimal_weights(est, kind, W, method, L_inv):
         if L_inv is None:
             L_inv = lower_inverse_stack(est.L)
         weights, iterations = _simplex_weights(L_inv, kind, Wb, est.count, shape)
-        fused, gap = _fuse_and_certify(est, L_inv, weights, kind, Wb)
+        fused, cert = _fuse_and_certify(est, L_inv, weights, kind, Wb)
         result = (fused.x, fused.P, fused.gains)
     else:
         # (only the first inverse factor is needed unless some problem is not trusted)
@@ -427,24 +481,25 @@ def _optimal_weights(est, kind, W, method, L_inv):
                   else L_inv[..., 0, :, :])
         d = _diagonalised_weights(est, kind, W, L1_inv)
         weights = np.stack([d.omega, 1.0 - d.omega], axis=-1)
-        iterations, gap = d.iterations, d.gap
+        iterations, cert = d.iterations, GapCertificate(d.gap, d.floor, d.computed)
         with np.errstate(all="ignore"):  # rows that are not trusted are replaced below
             result = _fuse_diagonalised(est, L1_inv, d, weights)
         if not np.all(d.trusted):
             if L_inv is None:
                 L_inv = lower_inverse_stack(est.L)
-            weights, iterations, gap, result = _resolve_untrusted(
-                est, L_inv, kind, Wb, ~d.trusted, weights, iterations, gap, result)
+            weights, iterations, cert, result = _resolve_untrusted(
+                est, L_inv, kind, Wb, ~d.trusted, weights, iterations, cert, result)
     info = {
         "iterations": iterations,
-        "converged": gap <= GAP_TOL,
-        "gap": gap,
+        "converged": gap_converged(*cert),
+        "gap": cert.gap,
+        "gap_floor": cert.floor,
         "solver": "diagonalise" if two else "simplex",
     }
     return weights, info, result
 
 
-def _resolve_untrusted(est, L_inv, kind, W, untrusted, weights, iterations, gap, result):
+def _resolve_untrusted(est, L_inv, kind, W, untrusted, weights, iterations, cert, result):
     """Certify (and where needed re-solve) the two-estimate problems ``untrusted`` from
     Cholesky factors, and assemble them with the general weighted fusion."""
     size = int(np.prod(est.batch_shape, dtype=int))
@@ -456,8 +511,8 @@ def _resolve_untrusted(est, L_inv, kind, W, untrusted, weights, iterations, gap,
     sub = type(est)(rows(est.x, 2), rows(est.P, 3), rows(est.L, 3), est.column)
     sub_L_inv, sub_W = rows(L_inv, 3), None if W is None else rows(W, 2)
     sub_weights = rows(weights, 1)
-    fused, sub_gap = _fuse_and_certify(sub, sub_L_inv, sub_weights, kind, sub_W,
-                                       failures="nan")
+    fused, sub_cert = _fuse_and_certify(sub, sub_L_inv, sub_weights, kind, sub_W,
+                                        failures="nan")
     sub_iterations = rows(iterations, 0)
     if fused is None:
         if kind == "det":
@@ -466,34 +521,37 @@ def _resolve_untrusted(est, L_inv, kind, W, untrusted, weights, iterations, gap,
             Wr = np.eye(est.dim) if sub_W is None else sub_W
             scale = np.einsum("...ij,...kji->...", Wr, sub.P)
         omega, more = _interval_weights(sub_L_inv, kind, sub_W, scale)
-        redo = ~(sub_gap <= GAP_TOL)
+        redo = ~gap_converged(*sub_cert)
         sub_weights = np.where(redo[:, None], np.stack([omega, 1.0 - omega], axis=-1),
                                sub_weights)
         sub_iterations = sub_iterations + np.where(redo, more, 0)
-        fused, sub_gap = _fuse_and_certify(sub, sub_L_inv, sub_weights, kind, sub_W)
+        fused, sub_cert = _fuse_and_certify(sub, sub_L_inv, sub_weights, kind, sub_W)
     out = []
-    for full, part in ((weights, sub_weights), (iterations, sub_iterations), (gap, sub_gap),
-                       *zip(result, (fused.x, fused.P, fused.gains))):
+    for full, part in ((weights, sub_weights), (iterations, sub_iterations),
+                       *zip(cert, sub_cert), *zip(result, (fused.x, fused.P, fused.gains))):
         flat = np.array(full).reshape((size,) + np.shape(full)[len(est.batch_shape):])
         flat[index] = part
         out.append(flat.reshape(np.shape(full)))
-    weights, iterations, gap, x, P, gains = out
-    return weights, iterations, gap, (x, P, gains)
+    weights, iterations, gap, floor, computed, x, P, gains = out
+    return weights, iterations, GapCertificate(gap, floor, computed), (x, P, gains)
 
 
 def _fuse_and_certify(est, L_inv, weights, kind, W, failures="raise"):
-    """The weighted fusion at ``weights`` and the certified gap of the criterion there.
+    """The weighted fusion at ``weights`` and the certificate of the criterion there
+    (:class:`~cifilter._numerics.criteria.GapCertificate`: the Frank-Wolfe gap with the
+    rounding of the gradients, :func:`~cifilter._numerics.criteria.gradient_rounding`).
 
     With ``failures="nan"`` a problem whose fused information is numerically singular at
     ``weights`` gets an infinite gap (to be re-solved) instead of raising, and the fusion
-    is formed only if every gap is at most ``GAP_TOL`` (else None is returned for it).
+    is formed only if every problem is converged (else None is returned for it).
     """
     factors = information_factors(L_inv, weights, failures=failures)
     g = criterion_gradient(factors, kind, W)
     value = criterion_of_factor(factors.R_inv, kind, W)
-    with np.errstate(invalid="ignore"):
-        gap = certified_gap(weights, g, value, kind)
-    gap = np.where(np.isnan(gap), np.inf, gap)
-    if failures == "nan" and not np.all(gap <= GAP_TOL):
-        return None, gap
-    return weighted_fusion(est.x, est.L, weights, L_inv, factors), gap
+    with np.errstate(invalid="ignore", over="ignore"):
+        rounding = gradient_rounding(factors, est.L, L_inv, g)
+        cert = gap_certificate(weights, g, value, kind, rounding)
+    cert = GapCertificate(*(np.where(np.isnan(part), np.inf, part) for part in cert))
+    if failures == "nan" and not np.all(gap_converged(*cert)):
+        return None, cert
+    return weighted_fusion(est.x, est.L, weights, L_inv, factors), cert

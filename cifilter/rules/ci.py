@@ -48,7 +48,8 @@ def ci_weights(Ps: ArrayLike, criterion: Union[str, ArrayLike] = "trace", *,
     omega : ndarray, shape (..., N)
         The weights, on the simplex; optima on the boundary are exact.
     info : dict
-        ``iterations``, ``converged`` (certified gap at most 1e-9) and ``gap`` per
+        ``iterations``, ``converged`` (optimal to the precision the inputs allow: the
+        certified gap at most ``max(1e-9, 2 * gap_floor)``), ``gap``, ``gap_floor`` per
         problem, ``solver``.
 
     Raises
@@ -114,7 +115,8 @@ def covariance_intersection(xs: ArrayLike, Ps: ArrayLike,
         ``info`` with ``criterion``, ``value`` (criterion at the result; for ``"det"``
         also ``log_value``, which does not overflow), ``rule`` (``"optimal"``,
         ``"fixed"`` or the fast rule's name), and for optimal weights ``iterations``,
-        ``converged`` (the certified gap is at most 1e-9), ``gap`` (a certified bound on
+        ``converged`` (the certified gap is at most ``max(1e-9, 2 * gap_floor)``, see
+        ``docs/conventions.rst``), ``gap`` (a certified bound on
         the excess of the criterion over its minimum: relative for the trace criteria, in
         log det for ``"det"``) and ``solver``.
 

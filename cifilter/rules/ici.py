@@ -17,12 +17,11 @@ from typing import Any, Union
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .._numerics.criteria import criterion_report, parse_criterion
+from .._numerics.criteria import criterion_report, gap_converged, parse_criterion
 from .._numerics.linalg import cholesky
 from .._numerics.validation import as_estimates, check_weights, restore_style
 from ..result import FusionResult
 from ._inverse_ci import (
-    CERTIFIED,
     inverse_ci_fusion,
     inverse_ci_pair,
     optimal_inverse_omega,
@@ -75,9 +74,13 @@ def inverse_covariance_intersection(xs: ArrayLike, Ps: ArrayLike,
         ``(omega, 1 - omega)`` for two estimates (None for N > 2), ``omega`` None (the
         field is CI's) and ``info`` with ``criterion``, ``value`` (``log_value`` for
         det), ``rule`` (``"optimal"``, ``"fixed"``, or ``"sequential"`` for N > 2) and,
-        for optimal weights, ``iterations``, ``gap`` and ``converged`` (gap at most
-        1e-9); for N > 2 also ``omegas`` (..., N - 1), the omega of each step (the gap
-        and convergence are those of the worst step).
+        for optimal weights, ``iterations``, ``gap`` (a certified bound of the excess of
+        the criterion over its minimum, the rounding of the slope included),
+        ``gap_floor`` (the part of it due to rounding) and ``converged`` (optimal to the
+        precision the inputs allow: ``gap <= max(1e-9, 2 gap_floor)``, see
+        ``docs/conventions.rst``); for N > 2 also ``omegas`` (..., N - 1), the omega of
+        each step (the gap and floor are those of the worst step, converged that of
+        every step).
 
     Raises
     ------
@@ -143,9 +146,10 @@ def _pair_result(x, P, L, kind, W, omega):
     info = {}
     if omega is None:
         Wf = None if W is None else np.broadcast_to(W, batch + (n, n)).reshape(-1, n, n)
-        w, iterations, gap = optimal_inverse_omega(pair, kind, Wf)
+        w, iterations, cert = optimal_inverse_omega(pair, kind, Wf)
         info.update(rule="optimal", iterations=iterations.reshape(batch),
-                    gap=gap.reshape(batch), converged=(gap <= CERTIFIED).reshape(batch))
+                    gap=cert.gap.reshape(batch), gap_floor=cert.floor.reshape(batch),
+                    converged=gap_converged(*cert).reshape(batch))
     else:
         w = np.broadcast_to(omega, batch).reshape(-1)
         info["rule"] = "fixed"
@@ -187,8 +191,9 @@ def _inverse_covariance_intersection(est, criterion="trace", omega=None):
             "omegas": np.stack(omegas, axis=-1),
             "iterations": sum(s["iterations"] for s in steps),
             "gap": np.max([s["gap"] for s in steps], axis=0),
+            "gap_floor": np.max([s["gap_floor"] for s in steps], axis=0),
+            "converged": np.logical_and.reduce([s["converged"] for s in steps]),
         }
-        info["converged"] = info["gap"] <= CERTIFIED
     info["criterion"] = kind
     info.update(criterion_report(P, kind, W))
     return FusionResult(restore_style(x, est.column), P, "ici", None, gains, info,

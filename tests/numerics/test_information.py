@@ -14,7 +14,9 @@ from cifilter._numerics.information import (
     diagonal_spread_squared,
     information_factors,
     information_matrices,
+    log_det_curvature,
     lower_inverse_stack,
+    reference_estimates,
     squared_norms,
     trace_curvature,
     weighted_fusion,
@@ -154,6 +156,80 @@ def test_trace_curvature_is_the_hessian_factor(with_W):
     expected = np.array([[np.trace(Wm @ P @ Pi[i] @ P @ Pi[j] @ P) for j in range(3)]
                          for i in range(3)])
     np.testing.assert_allclose(trace_curvature(factors, W), expected, rtol=1e-10)
+
+
+def _pairwise_trace_curvature(factors, W=None):
+    """The previous form of :func:`trace_curvature`: every ``B_i^T W B_j`` and
+    ``C_j^T C_i`` formed, then ``Tr(B_i^T W B_j C_j^T C_i)`` (O(N^2 n^3))."""
+    B, C = factors.B, factors.C
+    WB = B if W is None else W[..., None, :, :] @ B
+    BtWB = np.einsum("...iab,...jac->...ijbc", B, WB)
+    CtC = np.einsum("...iab,...jac->...ijbc", C, C)
+    return np.einsum("...ijbc,...jicb->...ij", BtWB, CtC)
+
+
+def _pairwise_log_det_curvature(factors):
+    """The previous form of the log det Hessian: ``||C_i^T C_j||_F^2`` pair by pair."""
+    CtC = np.einsum("...iab,...jac->...ijbc", factors.C, factors.C)
+    return np.einsum("...ijbc,...ijbc->...ij", CtC, CtC)
+
+
+@given(st.integers(2, 6).flatmap(lambda count: st.integers(1, 4).flatmap(
+    lambda n: st.tuples(st.lists(ill_conditioned_sets(count, n, common_scale=False),
+                                 min_size=1, max_size=3),
+                        arrays(float, (count,), elements=st.floats(0.05, 1.0))))),
+       st.booleans())
+def test_frobenius_curvatures_equal_the_pairwise_forms(args, with_W):
+    """The Gram forms ``<B_i C_i^T, W B_j C_j^T>_F`` and ``<C_i C_i^T, C_j C_j^T>_F``
+    against the pairwise products they replace (issue 21, item 5: N = 1000 CI took 22.9 s,
+    85% of it in the pairwise Hessian), batched, at condition numbers up to 1e12 and
+    covariances at their own scales: equal to rounding relative to the largest entry."""
+    sets, weights = args
+    Ps = np.array(sets)
+    n = Ps.shape[-1]
+    try:
+        factors = information_factors(lower_inverse_stack(np.linalg.cholesky(Ps)),
+                                      np.broadcast_to(weights, Ps.shape[:-2]))
+    except IllConditionedError:
+        return
+    W = (np.broadcast_to(np.diag(np.arange(1.0, n + 1)), Ps.shape[:1] + (n, n))
+         if with_W else None)
+    for new, old in ((trace_curvature(factors, W), _pairwise_trace_curvature(factors, W)),
+                     (log_det_curvature(factors), _pairwise_log_det_curvature(factors))):
+        assert new.shape == old.shape == Ps.shape[:2] + (Ps.shape[1],)
+        scale = np.abs(old).max(axis=(-2, -1), keepdims=True)
+        assert np.all(np.abs(new - old) <= 64 * n * np.finfo(float).eps * scale)
+
+
+def test_log_det_curvature_is_the_hessian():
+    Ps = spd((3,), 2)
+    w = np.array([0.2, 0.5, 0.3])
+    factors = information_factors(lower_inverse_stack(np.linalg.cholesky(Ps)), w)
+    P = np.linalg.inv(np.einsum("k,kij->ij", w, np.linalg.inv(Ps)))
+    Pi = np.linalg.inv(Ps)
+    expected = np.array([[np.trace(P @ Pi[i] @ P @ Pi[j]) for j in range(3)]
+                         for i in range(3)])
+    np.testing.assert_allclose(log_det_curvature(factors), expected, rtol=1e-10)
+
+
+def test_the_reference_estimate_is_the_most_precise_weighted_one():
+    """The remainder ``I - sum`` of the other gains goes to the estimate of largest
+    ``w_i / trace(P_i)`` (first of equals; never one of zero weight): with equal weights the
+    most precise estimate, not the first (before: the first of largest weight)."""
+    L = np.linalg.cholesky(np.array([1e6 * np.eye(2), np.eye(2), 1e-3 * np.eye(2)]))
+    assert int(reference_estimates(np.full(3, 1 / 3), L)) == 2
+    assert int(reference_estimates(np.array([0.5, 0.5, 0.0]), L)) == 1
+    assert int(reference_estimates(np.array([1.0, 1e-12, 0.0]), L)) == 0
+    same = np.linalg.cholesky(np.array([np.eye(2)] * 3))
+    assert int(reference_estimates(np.ones(3), same)) == 0
+    batch = reference_estimates(np.array([[1 / 3] * 3, [0.9, 0.1, 0.0]]), np.stack([L, L]))
+    np.testing.assert_array_equal(batch, [2, 1])  # 0.1 / 2 > 0.9 / 2e6
+    # the gains: the reference's is exactly I minus the others, batched and single
+    xs = np.zeros((3, 2))
+    for fused in (weighted_fusion(xs, L, np.full(3, 1 / 3)),
+                  weighted_fusion(xs[None], L[None], np.full((1, 3), 1 / 3))):
+        gains = fused.gains.reshape(3, 2, 2)
+        np.testing.assert_array_equal(gains[2], np.eye(2) - gains[0] - gains[1])
 
 
 def test_information_factors_failures_raise_or_give_nan_per_problem():

@@ -21,6 +21,7 @@ from strategies import ill_conditioned_sets
 from worst_case import assert_bound_holds, assert_unbiased, worst_violation
 
 from cifilter import ci_weights, covariance_intersection, fuse, partial_ci
+from cifilter._numerics.criteria import GAP_FLOOR_SAFETY
 
 criteria = st.sampled_from(["trace", "det"])
 EPS = np.finfo(float).eps
@@ -52,20 +53,39 @@ def test_ci_bound_holds_in_the_worst_direction(sets, criterion):
     assert_valid_covariance(r.P)
     assert_unbiased(r.gains)
     assert_bound_holds(r.P, r.gains, Ps, tol=ci_tolerance(Ps))
-    assert_converged_or_honest(r.info, Ps)
+    assert_converged_or_honest(r.info, Ps, P=r.P)
 
 
-def assert_converged_or_honest(info, Ps, tol=1e-9):
-    """Converged means a certified gap of at most 1e-9, and every set whose condition
-    numbers are at most 1e8 converges. Beyond that a set that is also nearly tied may stop
-    at the iteration limit (about 1% of these draws; gaps up to 5e-4 in log det were seen):
-    it must then say so, with a finite certified gap above the tolerance."""
+def floor_bound(Ps, P):
+    """The size a rounding floor may have: ``64 n^3 eps (cond(P) + max_i cond(P_i))``, the
+    conditions of the fused covariance and of the inputs (docs/conventions.rst: the floor is
+    of order ``kappa eps``; measured at most a few hundred ``eps kappa``)."""
+    n = P.shape[-1]
+    kappa = np.linalg.cond(P) + max(np.linalg.cond(Pi) for Pi in Ps)
+    return 64.0 * n**3 * EPS * kappa
+
+
+def assert_converged_or_honest(info, Ps, tol=1e-9, P=None):
+    """Converged means optimal to the precision the inputs allow (docs/conventions.rst):
+    a certified gap, rounding included, of at most ``max(1e-9, 2 gap_floor)``, with a
+    floor of order ``kappa eps`` (:func:`floor_bound`; rules without a floor: 0), and every
+    set whose condition numbers are at most 1e8 converges. Beyond that a set that is also
+    nearly tied may stop at the iteration limit: it must then say so, with a finite
+    certified gap above what converged allows. The gap is never 0.0 where there is a
+    rounding floor (it bounds the true excess)."""
     gap = float(info["gap"])
+    floor = float(info.get("gap_floor", 0.0))
     assert np.isfinite(gap) and gap >= 0.0
+    assert np.isfinite(floor) and floor >= 0.0
+    if floor > 0.0:
+        assert gap > 0.0
+    if P is not None and "gap_floor" in info:
+        assert floor <= floor_bound(Ps, P), (floor, floor_bound(Ps, P))
+    allowed = max(tol, GAP_FLOOR_SAFETY * floor)
     if info["converged"]:
-        assert gap <= tol
+        assert gap <= allowed
     else:
-        assert gap > tol
+        assert gap > min(tol, allowed)
         assert max(np.linalg.cond(P) for P in Ps) > 1e8, gap
 
 
@@ -212,9 +232,10 @@ def _mp_gap(Ps, weights, criterion, rho=None):
 def test_ci_weights_are_optimal_against_a_50_digit_reference(Ps, criterion):
     omega, info = ci_weights(Ps, criterion)
     assert_converged_or_honest(info, Ps)
-    # the reported gap (at most 1e-9 when converged) is the true one to rounding of order
-    # kappa eps: the optimum is never wrong by more than it says
-    assert _mp_gap(Ps, omega, criterion) <= max(info["gap"], 1e-9) + 1e-8 + _rounding_level(Ps)
+    # the reported gap includes the rounding of the gradients it is computed from, so it
+    # bounds the 50-digit Frank-Wolfe gap at the returned weights (itself a bound of the
+    # true excess): the optimum is never wrong by more than it says
+    assert _mp_gap(Ps, omega, criterion) <= info["gap"]
 
 
 @settings(max_examples=20)
@@ -296,7 +317,10 @@ def test_item_6_nearly_tied_inputs_converge_at_once():
     for criterion in ("trace", "det"):
         r = covariance_intersection([np.zeros(2)] * 3, Ps, criterion=criterion)
         assert r.info["converged"] and r.info["iterations"] <= 5  # was 200, unconverged
-        assert r.omega[2] == 0.0 and r.omega[0] == pytest.approx(r.omega[1], abs=1e-6)
+        # every split of the weight between the two identical estimates is optimal: the
+        # solver's is set by rounding in its Hessian (1.3e-6 apart with the Gram form of
+        # trace_curvature, 2.8e-7 with the pairwise form it replaced)
+        assert r.omega[2] == 0.0 and r.omega[0] == pytest.approx(r.omega[1], abs=1e-5)
     # one such problem in a batch does not hold the others back
     rng = np.random.default_rng(1)
     batch = np.array([[_spd(rng, 2, 10.0) for _ in range(3)] for _ in range(50)] + [Ps])
