@@ -8,8 +8,11 @@ estimates, feeding the result back into their filters.
   whose correlation is genuinely common information, where Inverse CI's bound applies);
 * :mod:`cifilter.network.simulate`: :func:`simulate_data` and :func:`run_network`,
   vectorised over Monte Carlo runs and nodes, with feedback, exchange period, all-at-once
-  or sequential fusion, packet loss and a one-step delay; :func:`centralised`, the
-  reference;
+  or sequential fusion, packet loss, a one-step delay, tracks that arrive late and out of
+  order (``simulate_data(lateness=)``; ``run_network(late=)`` aligns them in time through
+  the front door, ignores the delay or drops them) and nodes that send only part of their
+  track (``run_network(partial_nodes=, partial=)``, fused through ``H=`` or dropped);
+  :func:`centralised`, the reference;
 * :mod:`cifilter.network.study`: :func:`compare` (every registered rule on the same data)
   and :class:`NetworkStudy`, the same as a study for :func:`cifilter.montecarlo.run`,
   scored with :mod:`cifilter.metrics` by :func:`summarize` (the columns of ``python -m

@@ -9,7 +9,8 @@ Kalman filter model) and :func:`fully_connected`; :func:`two_tracks` is the two 
 the two-track demo; :func:`common_information` is two such nodes tracking a target with no
 process noise, where the correlation between the nodes is common information (Noack et
 al.'s model, the one Inverse CI assumes). :meth:`Scenario.from_filters` builds a scenario
-from the user's own ``cifilter.KalmanFilter`` objects and graph.
+from the user's own ``cifilter.KalmanFilter`` objects and graph; :meth:`Scenario.motion` is
+its model over several steps, the ``motion=`` of :func:`cifilter.fuse` for late tracks.
 """
 
 from collections.abc import Callable, Iterable
@@ -299,6 +300,55 @@ class Scenario:
         """
         i, j = np.nonzero(np.triu(self.adjacency))
         return [(int(a), int(b)) for a, b in zip(i, j)]
+
+    def motion(self, dt: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The target model over ``dt`` steps: the ``motion=`` of :func:`cifilter.fuse`
+        for times counted in steps.
+
+        ``x_{k+dt} = F_dt x_k + w`` with ``F_dt = F^dt`` and ``w`` the process noise of
+        the ``dt`` steps, of covariance ``Q_dt = sum_{s<dt} F^s Q F^sT`` (the recursion
+        ``Q_{s+1} = F Q_s F^T + Q``): the simulation's own model, so a track predicted
+        with it is predicted exactly. For :func:`constant_velocity_model` this is the
+        model of the longer time step, ``constant_velocity_model(dt * step, q)``, to
+        rounding.
+
+        Parameters
+        ----------
+        dt : float
+            Number of steps, a whole number >= 0 (``cifilter.fuse`` passes
+            ``|at - times[i]|`` as a float).
+
+        Returns
+        -------
+        F, Q : ndarray, shape (n, n)
+            Transition and process noise covariance over ``dt`` steps (new arrays; the
+            identity and zero for ``dt = 0``).
+
+        Raises
+        ------
+        ValueError
+            If ``dt`` is negative, not finite or not a whole number of steps.
+        TypeError
+            If ``dt`` is not a real number.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from cifilter.network import constant_velocity_model, ring
+        >>> F3, Q3 = ring(4).motion(3)
+        >>> F, Q = constant_velocity_model(3.0, 0.5)    # ring's model has dt 1, q 0.5
+        >>> bool(np.allclose(F3, F) and np.allclose(Q3, Q))
+        True
+        """
+        steps = check_scalar(dt, "dt", low=0)
+        if steps != round(steps):
+            raise ValueError(f"dt must be a whole number of steps, got {dt!r}")
+        F = np.eye(self.dim)
+        Q = np.zeros((self.dim, self.dim))
+        for _ in range(round(steps)):
+            F = self.F @ F
+            Q = self.F @ Q @ self.F.T + self.Q
+        return F, 0.5 * (Q + Q.T)
 
     def with_graph(self, graph: Any) -> "Scenario":
         """The same nodes with other links.

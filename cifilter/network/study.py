@@ -71,6 +71,16 @@ class NetworkStudy:
         Packet loss probability (see :func:`~cifilter.network.simulate_data`).
     options : dict, optional
         Options per rule, ``{name: {option: value}}``.
+    lateness : int or tuple of float, optional
+        How late the messages arrive (see :func:`~cifilter.network.simulate_data`;
+        default 0, on time).
+    late : {"align", "ignore", "drop"}, optional
+        What a node does with a late track (see :func:`~cifilter.network.run_network`;
+        default ``"align"``).
+    partial_nodes, partial : optional
+        Nodes that send only part of their track (a tuple of node indices or a dict
+        ``{node: S}``; default none) and what the others do with it (``"fuse"``, the
+        default, or ``"drop"``); see :func:`~cifilter.network.run_network`.
 
     Examples
     --------
@@ -80,6 +90,9 @@ class NetworkStudy:
     >>> out = study(np.random.default_rng(0), 3)
     >>> out["ci/nees"].shape, out["local/nees"].shape
     ((3, 5, 4), (3, 5, 4))
+    >>> late = NetworkStudy(ring(4), ("ci",), steps=5, lateness=3, late="ignore")
+    >>> late(np.random.default_rng(0), 3)["ci/nees"].shape
+    (3, 5, 4)
     """
 
     scenario: Scenario
@@ -91,6 +104,11 @@ class NetworkStudy:
     delay: bool = False
     loss: float = 0.0
     options: Optional[dict[str, dict[str, Any]]] = field(default=None, compare=False)
+    lateness: Union[int, tuple[float, ...]] = 0
+    late: str = "align"
+    partial_nodes: Optional[Union[tuple[int, ...], dict[int, Any]]] = field(default=None,
+                                                                           compare=False)
+    partial: str = "fuse"
 
     def __post_init__(self):
         if not isinstance(self.scenario, Scenario):
@@ -102,6 +120,18 @@ class NetworkStudy:
         object.__setattr__(self, "steps", check_int(self.steps, "steps", low=1))
         object.__setattr__(self, "loss", check_scalar(self.loss, "loss", low=0, high=1))
         object.__setattr__(self, "options", dict(self.options or {}))
+        # bad exchange options fail before any work too: a run of one step, no rule
+        data = simulate_data(self.scenario, 1, 1, lateness=self.lateness, rng=0)
+        run_network(self.scenario, data, None, **self._config())
+        if not isinstance(self.lateness, numbers.Integral):
+            object.__setattr__(self, "lateness", tuple(self.lateness))
+        if self.partial_nodes is not None and not isinstance(self.partial_nodes, Mapping):
+            object.__setattr__(self, "partial_nodes", tuple(self.partial_nodes))
+
+    def _config(self):
+        return dict(feedback=self.feedback, period=self.period, sequential=self.sequential,
+                    delay=self.delay, late=self.late, partial_nodes=self.partial_nodes,
+                    partial=self.partial)
 
     def __call__(self, rng, runs):
         """Simulate ``runs`` runs and score every estimator per run.
@@ -134,11 +164,11 @@ class NetworkStudy:
         """
         rng = as_rng(rng)
         runs = check_int(runs, "runs", low=1)
-        data = simulate_data(self.scenario, runs, self.steps, loss=self.loss, rng=rng)
+        data = simulate_data(self.scenario, runs, self.steps, loss=self.loss,
+                             lateness=self.lateness, rng=rng)
         base = int(rng.integers(2**63 - 1))
         out = {}
-        config = dict(feedback=self.feedback, period=self.period, sequential=self.sequential,
-                      delay=self.delay)
+        config = self._config()
         self._score(out, run_network(self.scenario, data, None, **config), data, runs)
         self._score(out, centralised(self.scenario, data), data, runs)
         for name in self.methods:
@@ -446,8 +476,8 @@ def compare(scenario: Scenario, methods: Optional[Sequence[str]] = None, *, runs
     confidence : float, optional
         Probability of the bands (default 0.95).
     **config
-        ``feedback``, ``period``, ``sequential``, ``delay``, ``loss``, ``options`` (see
-        :class:`NetworkStudy`).
+        ``feedback``, ``period``, ``sequential``, ``delay``, ``loss``, ``options``,
+        ``lateness``, ``late``, ``partial_nodes``, ``partial`` (see :class:`NetworkStudy`).
 
     Returns
     -------
