@@ -206,12 +206,28 @@ def cholesky(A, name="matrix"):
 def solve_lower(L, B):
     """Solve ``L X = B`` for lower triangular ``L`` (..., n, n) and ``B`` (..., n, k).
 
-    Forward substitution, vectorised over the batch (the loop runs over the n rows). For
-    stacks of small matrices this is faster than numpy's batched LU solver, which does
-    not know that ``L`` is triangular; a single matrix goes to LAPACK directly.
+    Forward substitution: one matrix by LAPACK's triangular solver (``dtrtrs``); a stack
+    vectorised over the batch, the loop running over the n rows. Both are componentwise
+    backward stable, ``(L + dL) X = B`` with ``|dL| <= n eps |L|``, so the error of ``X`` is
+    at most about ``n eps |L^-1| |L| |X|`` entry by entry, which for the factors of
+    ill-conditioned covariances is far below ``cond(L) eps ||X||``. (An LU factorisation,
+    ``numpy.linalg.solve``, pivots rows when an entry below the diagonal is the larger and
+    loses that: up to 100 times the bound was seen at condition numbers to 1e12.) For stacks
+    of small matrices the row loop is close to the fastest numpy formulation measured
+    (4 x 4 to 8 x 8: batched LU is as fast at 30 matrices and 1.3 to 3.4 times slower from
+    60 on; an einsum row loop or a samples-last layout gain nothing at 30 to 60 matrices and
+    10% to 35% at 200 to 3000, and would change the rounding of every caller; a LAPACK call
+    per matrix is slower from 8 matrices on).
+
+    Raises ``numpy.linalg.LinAlgError`` for one matrix with a zero on its diagonal.
     """
     if L.ndim == 2 and B.ndim == 2:
-        return np.linalg.solve(L, B)
+        X, info = lapack.dtrtrs(L, B, lower=1)
+        if info > 0:
+            raise np.linalg.LinAlgError("Singular matrix")
+        if info == 0:
+            return X
+        return np.linalg.solve(L, B)  # (arguments LAPACK rejects: numpy explains)
     n = L.shape[-1]
     X = np.empty(np.broadcast_shapes(L.shape[:-2], B.shape[:-2]) + B.shape[-2:])
     for i in range(n):

@@ -11,14 +11,14 @@ Conventions
 * Inputs are copied, never modified; covariances are symmetrised after the check.
 """
 
-import math
 import numbers
 from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import lapack
 
-from .linalg import cholesky, cholesky_single, symmetrize
+from .linalg import cholesky, symmetrize
 
 # Relative tolerance for the symmetry check of a covariance: filterpy's Joseph-form
 # updates leave asymmetries of order 1e-16 relative, user typos are of order 1.
@@ -166,23 +166,46 @@ def check_symmetric(P, name="Ps", *, labels=None):
         Not square, n = 0, non-finite entries, or ``|P - P^T| > SYMMETRY_RTOL * max|P_ii|``
         (the message names the first offending matrix).
     """
+    _check_symmetric(P, name, labels)
+    return _symmetrized(P)
+
+
+def _check_symmetric(P, name, labels):
+    """:func:`check_symmetric`'s tests. Returns True when ``P`` is exactly symmetric and its
+    symmetrised copy ``(P + P^T) / 2`` equals ``P`` bit for bit, for sure or (on the long
+    stacks tested column by column) whenever ``P`` passes a Cholesky factorisation."""
     if P.ndim < 2 or P.shape[-1] != P.shape[-2]:
         raise ValueError(f"{name} must hold square matrices (..., n, n), got shape {P.shape}")
     if P.shape[-1] == 0:
         raise ValueError(f"{name} must hold matrices of dimension n >= 1, got shape {P.shape}")
     if P.size == 0:
         raise ValueError(f"{name} is empty (shape {P.shape})")
-    if not np.all(np.isfinite(P)):
+    n = P.shape[-1]
+    count = P.size // (n * n)
+    if 1 < n <= _COLUMN_DIM and count >= _COLUMN_STACK and P.flags.c_contiguous:
+        asymmetry, scale = _symmetry_by_columns(P.reshape(count, n * n), n)
+        asymmetry, scale = asymmetry.reshape(P.shape[:-2]), scale.reshape(P.shape[:-2])
+    else:
+        with np.errstate(invalid="ignore", over="ignore"):  # inf - inf, inf - x: flagged below
+            difference = np.subtract(P, np.swapaxes(P, -1, -2))
+        if not difference.any():  # exactly symmetric, hence finite (inf - inf is NaN)
+            return bool(np.abs(P).max() < _NO_OVERFLOW)  # then P + P^T = 2 P exactly
+        np.abs(difference, out=difference)
+        asymmetry = difference.max(axis=(-2, -1))
+        scale = np.abs(np.diagonal(P, axis1=-2, axis2=-1)).max(axis=-1)
+    # One pass serves both tests: an entry that is not finite makes its matrix's asymmetry
+    # (off the diagonal: inf - inf and NaN give NaN, inf - x inf) or its scale (on the
+    # diagonal) NaN or inf; only then are the entries looked at one by one
+    if not (np.isfinite(asymmetry).all() and np.isfinite(scale).all()):
         finite = np.isfinite(P).all(axis=(-2, -1))
-        index = np.unravel_index(int(np.argmin(finite.ravel())), finite.shape)
-        raise ValueError(
-            f"{_where(name, tuple(int(i) for i in index), labels)} contains non-finite values "
-            "(NaN or inf)"
-        )
-    asymmetry = np.abs(P - np.swapaxes(P, -1, -2)).max(axis=(-2, -1))
+        if not finite.all():
+            index = np.unravel_index(int(np.argmin(finite.ravel())), finite.shape)
+            raise ValueError(
+                f"{_where(name, tuple(int(i) for i in index), labels)} contains non-finite "
+                "values (NaN or inf)"
+            )
     # The largest entry of a positive semidefinite matrix lies on its diagonal (and a
     # matrix that is not PSD fails the Cholesky test anyway).
-    scale = np.abs(np.diagonal(P, axis1=-2, axis2=-1)).max(axis=-1)
     bad = asymmetry > SYMMETRY_RTOL * scale
     if np.any(bad):
         index = np.unravel_index(int(np.argmax(bad.ravel())), bad.shape)
@@ -190,7 +213,43 @@ def check_symmetric(P, name="Ps", *, labels=None):
         raise ValueError(
             f"{where} is not symmetric (max |P - P^T| = {float(asymmetry[index]):.3g})"
         )
-    return symmetrize(P)
+    # a matrix that factorises has no entry above its largest diagonal one (to rounding)
+    return not asymmetry.any() and bool(scale.max() < _NO_OVERFLOW / 2)
+
+
+# 2 P overflows exactly for entries of at least this size.
+_NO_OVERFLOW = 2.0**1023
+# Stacks of at least this many matrices of dimension at most _COLUMN_DIM are tested column
+# by column (a pass over the stack per pair of entries: strided but long) rather than with
+# P - P^T (a transposed operand and a reduction over each small matrix, both slow on long
+# stacks; 5x slower for 2e5 matrices 4 x 4).
+_COLUMN_STACK = 256
+_COLUMN_DIM = 8
+
+
+def _symmetry_by_columns(flat, n):
+    """``max |P_ij - P_ji|`` and ``max |P_ii|`` per row of ``flat`` (count, n * n), the
+    matrices flattened; NaN or inf for a matrix with a non-finite entry (as in
+    :func:`_check_symmetric`)."""
+    asymmetry = None
+    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf, inf - x: NaN and inf
+        for i in range(1, n):
+            for j in range(i):
+                difference = np.subtract(flat[:, i * n + j], flat[:, j * n + i])
+                np.abs(difference, out=difference)
+                asymmetry = (difference if asymmetry is None
+                             else np.maximum(asymmetry, difference, out=asymmetry))
+    scale = np.abs(flat[:, 0])
+    for i in range(1, n):
+        np.maximum(scale, np.abs(flat[:, i * (n + 1)]), out=scale)
+    return asymmetry, scale
+
+
+def _symmetrized(P):
+    """``(P + P^T) / 2`` (bitwise what :func:`symmetrize` gives), one temporary fewer."""
+    S = np.add(P, np.swapaxes(P, -1, -2))
+    S *= 0.5
+    return S
 
 
 def check_covariances(P, name="Ps", L=None, *, labels=None):
@@ -228,9 +287,28 @@ def check_covariances(P, name="Ps", L=None, *, labels=None):
     The success path costs one symmetry test and one batched Cholesky factorisation;
     eigenvalues are computed only for the message of a failure.
     """
-    P = check_symmetric(P, name, labels=labels)
+    return _checked_covariances(P, name, L, labels, owned=False)
+
+
+def _checked_covariances(P, name, L=None, labels=None, owned=False):
+    """:func:`check_covariances`; with ``owned`` (``P`` is a private copy of the caller's
+    input) an exactly symmetric ``P`` is returned as it is when it factorises: it equals its
+    symmetrised copy bit for bit."""
+    exact = _check_symmetric(P, name, labels)
     if L is not None:
-        return P, L
+        return _symmetrized(P), L
+    if P.ndim > 2:
+        # P itself is finite (tested), so LAPACK either fails on it or gives a finite factor;
+        # a symmetrised copy may have overflowed, and then its factor is tested as always
+        as_is = exact and owned
+        S = P if as_is else _symmetrized(P)
+        try:
+            L = np.linalg.cholesky(S)
+            if as_is or np.isfinite(L).all():
+                return S, L
+        except np.linalg.LinAlgError:
+            pass  # the messages below
+    P = _symmetrized(P)
     if labels is None:
         return P, cholesky(P, name)
     try:
@@ -298,56 +376,69 @@ def as_mean_stack(xs, n, count, name="xs", *, labels=None):
     return x, style == "column"
 
 
-def _usual_single_estimates(xs, Ps):
+def _usual_estimates(xs, Ps):
     """The common case of :func:`as_estimates` done cheaply, or None.
 
-    Sequences of N float64 arrays: means (n,) or (n, 1), covariances (n, n), no batch
-    axes, finite, symmetric within ``SYMMETRY_RTOL`` and Cholesky-factorisable. Anything
-    else, including every failure, returns None and the general path decides (and
-    explains). A single fusion of two tracks is the call a tracker makes hundreds of times
-    per scan; the general path's per-item generality costs more than the fusion.
+    Sequences of N >= 2 float64 arrays (exactly ``numpy.ndarray``) of equal shapes:
+    covariances (..., n, n) and means (..., n) or (..., n, 1) with the same batch axes (no
+    broadcasting), finite, symmetric within ``SYMMETRY_RTOL`` and Cholesky-factorisable.
+    The result is exactly the general path's (the same copies, symmetrisation and factors;
+    one pair without batch axes is factorised matrix by matrix by LAPACK, as it always
+    was). Anything else, including every failure, returns None and the general path
+    decides (and explains). A single fusion of two tracks is the call a tracker makes
+    hundreds of times per scan, and a batch of them the call of a simulation; the general
+    path's per-item generality costs more than the fusion.
     """
     if not (_is_sequence(xs) and _is_sequence(Ps)) or len(xs) != len(Ps) or len(Ps) < 2:
         return None
-    first = Ps[0]
-    if not isinstance(first, np.ndarray) or first.ndim != 2 or first.dtype != np.float64:
+    first, x_first = Ps[0], xs[0]
+    if type(first) is not np.ndarray or type(x_first) is not np.ndarray:
         return None
-    n = first.shape[0]
-    if n == 0 or first.shape != (n, n):
+    shape, x_shape = first.shape, x_first.shape
+    if len(shape) < 2 or shape[-1] != shape[-2] or shape[-1] == 0:
         return None
-    count = len(Ps)
-    P = np.empty((count, n, n))
-    x = np.empty((count, n))
-    column = None
-    for i, (xi, Pi) in enumerate(zip(xs, Ps)):
-        if not (isinstance(Pi, np.ndarray) and isinstance(xi, np.ndarray)
-                and Pi.dtype == np.float64 and xi.dtype == np.float64 and Pi.shape == (n, n)):
+    n, batch = shape[-1], shape[:-2]
+    if x_shape == batch + (n,):
+        column = False
+    elif x_shape == batch + (n, 1):
+        column = True
+    else:
+        return None
+    for xi, Pi in zip(xs, Ps):
+        if (type(Pi) is not np.ndarray or type(xi) is not np.ndarray or Pi.shape != shape
+                or xi.shape != x_shape or Pi.dtype != np.float64 or xi.dtype != np.float64):
             return None
-        if xi.shape == (n,):
-            style = False
-        elif xi.shape == (n, 1):
-            style = True
-        else:
-            return None
-        column = style if column is None else column
-        P[i] = Pi
-        x[i] = xi.reshape(n)
-    # NaN and inf propagate through sums (a finite overflow only sends us the long way)
-    if not math.isfinite(float(P.sum()) + float(x.sum())):
+    if batch:  # new arrays: the inputs are never aliased
+        P = np.stack(Ps, axis=-3)
+        x = np.stack([xi[..., 0] for xi in xs] if column else xs, axis=-2)
+    else:
+        P = np.array(Ps)
+        x = np.array(xs).reshape(len(xs), n)
+    if not np.isfinite(x).all():
         return None
-    difference = P - P.transpose(0, 2, 1)
-    asymmetry = np.abs(difference).max(axis=(1, 2)).tolist()
-    scale = np.abs(P.diagonal(axis1=1, axis2=2)).max(axis=1).tolist()
-    if any(a > SYMMETRY_RTOL * b for a, b in zip(asymmetry, scale)):
+    try:
+        exact = _check_symmetric(P, "Ps", None)
+    except ValueError:
         return None
-    P = 0.5 * (P + P.transpose(0, 2, 1))  # exactly symmetric, as symmetrize
-    L = np.empty((count, n, n))
-    for i in range(count):
-        factor = cholesky_single(P[i])
-        if factor is None:
+    if not exact:
+        P = _symmetrized(P)
+    if not batch:
+        L = np.empty(P.shape)
+        for i in range(len(P)):  # LAPACK directly
+            factor, info = lapack.dpotrf(P[i], lower=1, clean=1)
+            if info:
+                return None
+            L[i] = factor
+    else:
+        try:
+            L = np.linalg.cholesky(P)
+        except np.linalg.LinAlgError:
             return None
-        L[i] = factor
-    return Estimates(x, P, L, bool(column))
+    # the input itself is finite (tested), so its factor is; a symmetrised copy may have
+    # overflowed (entries near the largest float), and LAPACK passes inf and NaN through
+    if not exact and not np.isfinite(L).all():
+        return None
+    return Estimates(x, P, L, column)
 
 
 def as_estimates(xs, Ps, *, min_count=2, names=("xs", "Ps"), labels=None):
@@ -385,7 +476,7 @@ def as_estimates(xs, Ps, *, min_count=2, names=("xs", "Ps"), labels=None):
         batch shapes that do not broadcast.
     """
     if min_count <= 2:
-        fast = _usual_single_estimates(xs, Ps)
+        fast = _usual_estimates(xs, Ps)
         if fast is not None:
             return fast
     x_name, P_name = names
@@ -399,7 +490,7 @@ def as_estimates(xs, Ps, *, min_count=2, names=("xs", "Ps"), labels=None):
         index = np.unravel_index(int(np.argmin(finite.ravel())), finite.shape)
         where = _where(x_name, tuple(int(i) for i in index), labels)
         raise ValueError(f"{where} contains non-finite values (NaN or inf)")
-    P, L = check_covariances(P, P_name, labels=labels)
+    P, L = _checked_covariances(P, P_name, labels=labels, owned=True)
     try:
         batch = np.broadcast_shapes(x.shape[:-2], P.shape[:-3])
     except ValueError:
@@ -420,7 +511,7 @@ def as_covariances(Ps, *, min_count=2, name="Ps"):
     P = as_covariance_stack(Ps, name)
     if P.shape[-3] < min_count:
         raise ValueError(f"at least {min_count} estimates are needed, got {P.shape[-3]}")
-    P, L = check_covariances(P, name)
+    P, L = _checked_covariances(P, name, owned=True)
     return Estimates(np.zeros(P.shape[:-1]), P, L, False)
 
 

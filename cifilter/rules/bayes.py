@@ -53,17 +53,21 @@ from ..result import FusionResult
 __all__ = ["bayesian_fusion", "sample_joint_covariances"]
 
 # Joint-covariance entries ((N n)^2 per sample) processed at once, by the sampler and by the
-# fusion: about 4 MB per array, small enough for the processor's cache (numpy's stacked
-# products of tiny matrices are several times slower on arrays that do not fit in it) and a
-# bound on the memory of bayesian_fusion whatever ``samples`` and the batch are (a few
-# dozen MB for any chunk). The results do not depend on it (see _streams).
-_CHUNK_ENTRIES = 1 << 19
+# fusion: 512 KB per array (1024 samples of 8 x 8), small enough for the processor's cache
+# (the fusion's element-wise passes over the samples cost 2-3 times more per sample on
+# 3000-sample chunks than on 1000-sample ones; the sampler's stacked products are no slower
+# on smaller chunks) and a bound on the memory of bayesian_fusion whatever ``samples`` and
+# the batch are (a few MB for any chunk). The results do not depend on it (see _streams).
+_CHUNK_ENTRIES = 1 << 16
 # A sample of sample_joint_covariances whose smallest Cholesky pivot ratio G_ii^2 / A_ii is
 # below this is checked with numpy's Cholesky factorisation (and redrawn if that fails).
 # Every failure seen in 1.4e7 draws with blocks of condition number up to 1e9 had a ratio
 # below 1e-12.
 _SUSPECT_PIVOT_RATIO = 1e-9
 _MAX_REDRAWS = 50
+# Column norms of the Householder QR between these bounds are computed from the squares as
+# they are (no overflow or underflow in them); outside they are taken again after scaling.
+_NORM_SAFE = (1e-150, 1e150)
 
 
 def _check_dof(dof, count, n):
@@ -127,6 +131,15 @@ def _stage_layout(count, n, dof):
     return offsets, total, df
 
 
+def _deviates(rows, count, n, dof, normal_rng, chi_rng):
+    """The random numbers of ``rows`` samples: normals (rows, total) and the square roots of
+    the chi-square deviates (rows, (N - 1) n), in the order the streams give them."""
+    _, total, df = _stage_layout(count, n, dof)
+    normals = normal_rng.standard_normal((rows, total))
+    chi = np.sqrt(chi_rng.chisquare(df, size=(rows, df.size)))
+    return normals, chi
+
+
 def _draws(rows, count, n, dof, normal_rng, chi_rng):
     """The random numbers of ``rows`` samples: per stage j = 1..N-1, ``[X, L_S]`` (rows, n, p + n).
 
@@ -136,9 +149,8 @@ def _draws(rows, count, n, dof, normal_rng, chi_rng):
     ``sum_j n (p + n)`` normals and ``(N - 1) n`` chi-squares, in that order within each
     stream, so the draws of a sample do not depend on how the rows are chunked.
     """
-    offsets, total, df = _stage_layout(count, n, dof)
-    normals = normal_rng.standard_normal((rows, total))
-    chi = np.sqrt(chi_rng.chisquare(df, size=(rows, df.size)))
+    offsets = _stage_layout(count, n, dof)[0]
+    normals, chi = _deviates(rows, count, n, dof, normal_rng, chi_rng)
     stages = []
     for j in range(1, count):
         p = j * n
@@ -150,8 +162,145 @@ def _draws(rows, count, n, dof, normal_rng, chi_rng):
     return stages
 
 
-def _sample_whitened(rows, count, n, dof, normal_rng, chi_rng):
-    """Whitened joint covariance samples: ``H`` and ``R = H H^T`` (rows, N n, N n).
+def _draws_last(rows, count, n, dof, normal_rng, chi_rng):
+    """:func:`_draws` in the samples-last layout: per stage ``[X, L_S]`` as (n, p + n, width).
+
+    ``width = max(rows, 2)``: a single sample is followed by a copy of itself, because
+    numpy's ``einsum`` sums a contraction in another order when the samples axis has length
+    one; from two samples on, every sample's arithmetic is the same whatever the chunk (the
+    caller keeps the first ``rows`` results).
+    """
+    offsets = _stage_layout(count, n, dof)[0]
+    normals, chi = _deviates(rows, count, n, dof, normal_rng, chi_rng)
+    if rows == 1:
+        normals, chi = np.repeat(normals, 2, axis=0), np.repeat(chi, 2, axis=0)
+    rows = max(rows, 2)
+    normals, chi = np.ascontiguousarray(normals.T), chi.T
+    stages = []
+    for j in range(1, count):
+        p = j * n
+        Y = normals[offsets[j - 1]:offsets[j - 1] + n * (p + n)].reshape(n, p + n, rows)
+        for i in range(n):
+            Y[i, p + i] = chi[(j - 1) * n + i]
+            Y[i, p + i + 1:] = 0.0
+        stages.append(Y)
+    return stages
+
+
+# ----------------------------------------------------------------- samples last
+# The fusion works on its samples in the samples-last layout: a matrix per sample is an
+# array (rows, columns, samples), and the per-sample linear algebra (Cholesky, triangular
+# solves, Householder QR) is written as loops over the few rows and columns of the matrices
+# whose every step is one vectorised pass over the samples. numpy's stacked routines on the
+# (samples, rows, columns) layout pay a LAPACK or BLAS call per matrix (microseconds each
+# for a 4 x 4), which made them most of the fusion's time. Each sample's arithmetic is the
+# same algorithm in the same order whatever the other samples are, so the results do not
+# depend on the chunking.
+def _cholesky_last(W):
+    """Lower Cholesky factor of ``W`` (m, m, rows) (lower triangle read), or None when a pivot
+    is not positive (the caller then asks :func:`cholesky` for the message)."""
+    m = W.shape[0]
+    C = np.zeros(W.shape)
+    for j in range(m):
+        pivot = W[j, j] - np.einsum("kr,kr->r", C[j, :j], C[j, :j]) if j else W[j, j]
+        if not (pivot > 0.0).all():
+            return None
+        C[j, j] = d = np.sqrt(pivot)
+        if j + 1 < m:
+            column = (W[j + 1:, j] - np.einsum("ikr,kr->ir", C[j + 1:, :j], C[j, :j]) if j
+                      else W[1:, 0])
+            C[j + 1:, j] = column / d
+    return C
+
+
+def _solve_lower_last(L, B, identity_rows=0):
+    """Solve ``L X = B`` for lower triangular ``L`` (m, m, rows), ``B`` (m, k, rows or 1).
+
+    Forward substitution; the first ``identity_rows`` rows of ``L`` are known to be those of
+    the identity (then ``X`` starts as ``B``, which is what the substitution gives there)."""
+    X = np.empty(B.shape[:2] + L.shape[-1:])
+    X[:identity_rows] = B[:identity_rows]
+    for i in range(identity_rows, L.shape[0]):
+        row = B[i] - np.einsum("jr,jkr->kr", L[i, :i], X[:i]) if i else B[i]
+        X[i] = row / L[i, i]
+    return X
+
+
+def _solve_lower_transposed_last(L, B):
+    """Solve ``L^T X = B`` for lower triangular ``L`` (m, m, rows), ``B`` (m, k, rows)."""
+    m = L.shape[0]
+    X = np.empty(B.shape)
+    for i in range(m - 1, -1, -1):
+        row = B[i] - np.einsum("jr,jkr->kr", L[i + 1:, i], X[i + 1:]) if i < m - 1 else B[i]
+        X[i] = row / L[i, i]
+    return X
+
+
+def _solve_upper_last(U, B):
+    """Solve ``U X = B`` for upper triangular ``U`` (m, m, rows), ``B`` (m, k, rows)."""
+    m = U.shape[0]
+    X = np.empty(B.shape)
+    for i in range(m - 1, -1, -1):
+        row = B[i] - np.einsum("jr,jkr->kr", U[i, i + 1:], X[i + 1:]) if i < m - 1 else B[i]
+        X[i] = row / U[i, i]
+    return X
+
+
+def _qr_last(F):
+    """Householder QR ``F = Q R`` of ``F`` (m, k, rows), m >= k: ``Q`` (m, k, rows) with
+    orthonormal columns, ``R`` (k, k, rows) upper triangular.
+
+    LAPACK's reflections (``dgeqrf``, ``dorgqr``): column j is mapped to ``beta e_j`` with
+    ``beta = -sign(alpha) ||x||``, so ``alpha - beta`` never cancels; a zero column is left
+    alone. Where a squared norm could have overflowed or underflowed, the norm is taken again
+    of the column divided by its largest entry. Backward stable column by column, as
+    LAPACK's.
+    """
+    m, k, rows = F.shape
+    A = F.copy()
+    R = np.zeros((k, k, rows))
+    reflectors = []
+    for j in range(k):
+        x = A[j:, j]
+        norm = np.sqrt(np.einsum("ir,ir->r", x, x))
+        unsafe = ~((norm > _NORM_SAFE[0]) & (norm < _NORM_SAFE[1]))
+        if unsafe.any():  # zero, tiny, huge or not finite: scaled, and no reflection at zero
+            largest = np.abs(x[:, unsafe]).max(axis=0)
+            scale = np.where(largest > 0.0, largest, 1.0)
+            y = x[:, unsafe] / scale
+            squares = y[0] * y[0]
+            for i in range(1, len(y)):  # in order, as for any number of samples
+                squares += y[i] * y[i]
+            norm[unsafe] = scale * np.sqrt(squares)
+        alpha = x[0]
+        beta = np.copysign(norm, -alpha)
+        shift = alpha - beta
+        tau = -shift / beta
+        zero = norm == 0.0
+        if zero.any():
+            beta[zero], tau[zero], shift[zero] = alpha[zero], 0.0, 1.0
+        v = x / shift
+        v[0] = 1.0
+        R[j, j] = beta
+        if j + 1 < k:
+            rest = A[j:, j + 1:]
+            rest -= v[:, None] * (tau * np.einsum("ir,icr->cr", v, rest))
+            R[j, j + 1:] = rest[0]
+        reflectors.append((v, tau))
+    Q = np.zeros((m, k, rows))
+    for j in range(k):
+        Q[j, j] = 1.0
+    for j in range(k - 1, -1, -1):
+        v, tau = reflectors[j]
+        block = Q[j:, j:]
+        block -= v[:, None] * (tau * np.einsum("ir,icr->cr", v, block))
+    return Q, R
+
+
+def _sample_whitened_last(rows, count, n, dof, normal_rng, chi_rng):
+    """Whitened joint covariance samples, samples last: ``H`` (N n, N n, width) and the block
+    rows of ``R = H H^T`` left of the diagonal, ``[R_10, (R_20, R_21), ...]`` (n, p, width),
+    ``width = max(rows, 2)`` (:func:`_draws_last`).
 
     ``R`` has identity diagonal blocks and is the law of ``D^-1 P_x D^-T`` (``D`` the block
     diagonal of the inputs' Cholesky factors); ``H`` is its lower Cholesky factor, built
@@ -169,20 +318,48 @@ def _sample_whitened(rows, count, n, dof, normal_rng, chi_rng):
     new diagonal block of R the identity.
     """
     dim = count * n
-    H = np.zeros((rows, dim, dim))
-    R = np.zeros((rows, dim, dim))
-    H[:, :n, :n] = np.eye(n)
-    R.reshape(rows, dim * dim)[:, ::dim + 1] = 1.0  # the identity diagonal blocks
-    for j, Y in enumerate(_draws(rows, count, n, dof, normal_rng, chi_rng), start=1):
+    H = np.zeros((dim, dim, max(rows, 2)))  # (a single sample twice: see _draws_last)
+    for i in range(n):
+        H[i, i] = 1.0
+    cross = []
+    for j, Y in enumerate(_draws_last(rows, count, n, dof, normal_rng, chi_rng), start=1):
         p = j * n
-        # Contiguous transposes: numpy's stacked matmul is about twice as fast on them.
-        C = cholesky(Y @ _transpose(Y), "X X^T + S")
-        TD = solve_lower(C, Y)  # [T, C^-1 L_S]
-        H[:, p:p + n, :p + n] = TD
-        cross = TD[..., :p] @ _transpose(H[:, :p, :p])
-        R[:, p:p + n, :p] = cross
-        R[:, :p, p:p + n] = np.swapaxes(cross, -1, -2)
-    return H, R
+        W = np.empty((n, n, H.shape[-1]))  # S + X X^T = Y Y^T (lower triangle)
+        for a in range(n):
+            W[a, :a + 1] = np.einsum("kr,bkr->br", Y[a], Y[:a + 1])
+        C = _cholesky_last(W)
+        if C is None:  # never for finite draws (S is positive definite): the message
+            W = np.moveaxis(W, -1, 0)
+            C = np.moveaxis(cholesky(np.tril(W) + np.swapaxes(np.tril(W, -1), -1, -2),
+                                     "X X^T + S"), 0, -1)
+        TD = _solve_lower_last(C, Y)  # [T, C^-1 L_S]
+        H[p:p + n, :p + n] = TD
+        if j == 1:  # H_<1 is the identity: the cross block is T itself
+            cross.append(TD[:, :p])
+        else:
+            cross.append(np.einsum("akr,bkr->abr", TD[:, :p], H[:p, :p]))
+    return H, cross
+
+
+def _whitened_blue_last(H, E0):
+    """Per-sample BLUE in whitened coordinates by QR (no normal equations), samples last.
+
+    ``H`` (Nn, Nn, rows) the factor of the whitened joint ``R``, ``E0`` (Nn, n, rows or 1).
+    With ``F0 = H^-1 E0 = Q R0``: the whitened gains ``V0 = R0^-1 Q^T H^-1`` (n, Nn, rows)
+    and ``R0^-1 R0^-T`` (n, n, rows); the BLUE of eqs. (18)-(19) for the joint
+    ``P_x = D H H^T D^T`` has gains ``[K_1 ... K_N] = S^-1 V0 D^-1`` and covariance
+    ``P_0 = S^-1 R0^-1 R0^-T S^-1``.
+    """
+    n = E0.shape[1]
+    F0 = _solve_lower_last(H, E0, identity_rows=n)
+    Q, R0 = _qr_last(F0)
+    QtHinv = _solve_lower_transposed_last(H, Q)  # (Q^T H^-1)^T = H^-T Q
+    V0 = _solve_upper_last(R0, QtHinv.transpose(1, 0, 2))
+    eye = np.zeros((n, n, 1))
+    for i in range(n):
+        eye[i, i] = 1.0
+    R0_inv = _solve_upper_last(R0, np.broadcast_to(eye, R0.shape))
+    return V0, np.einsum("akr,bkr->abr", R0_inv, R0_inv)
 
 
 def _sample_coloured(L, P, dof, normal_rng, chi_rng, out):
@@ -367,7 +544,7 @@ def sample_joint_covariances(Ps: ArrayLike, dof: float, size: int,
 
     Memory: the output holds ``size * (N n)^2`` floats per problem (128 MB per million
     samples of a 4x4 joint covariance), which is inherent to returning them; beyond it
-    the sampler uses a few arrays of one chunk (about 4 MB each). To average a function of
+    the sampler uses a few arrays of one chunk (about 0.5 MB each). To average a function of
     many samples, use :func:`bayesian_fusion` or call this in pieces with a Generator.
     Vectorised over samples and batch; the Python loops run over the chunks and the N - 1
     stages.
@@ -422,39 +599,37 @@ class _Whitening:
         self.reference = column_norms.argmax(axis=-2)  # (B, n)
 
 
-def _whitened_blue(H, E0):
-    """Per-sample BLUE in whitened coordinates, by QR (no normal equations).
-
-    ``H`` (rows, Nn, Nn) the factor of the whitened joint ``R``, ``E0`` (rows or 1, Nn, n).
-    With ``F0 = H^-1 E0 = Q R0``: the whitened gains ``V0 = R0^-1 Q^T H^-1`` (rows, n, Nn)
-    and ``R0^-1 R0^-T`` (rows, n, n); the BLUE of eqs. (18)-(19) for the joint
-    ``P_x = D H H^T D^T`` has gains ``[K_1 ... K_N] = S^-1 V0 D^-1`` and covariance
-    ``P_0 = S^-1 R0^-1 R0^-T S^-1``.
-    """
-    F0 = solve_lower(H, np.broadcast_to(E0, H.shape[:-1] + E0.shape[-1:]))
-    Q, R0 = np.linalg.qr(F0)
-    QtHinv = _solve_upper(_transpose(H), Q)  # (Q^T H^-1)^T = H^-T Q
-    V0 = _solve_upper(R0, _transpose(QtHinv))
-    R0_inv = _solve_upper(R0, np.broadcast_to(np.eye(R0.shape[-1]), R0.shape))
-    return V0, R0_inv @ _transpose(R0_inv)
-
-
 class _Accumulator:
     """Sums over the samples of each problem of ``V0``, ``R`` and ``R0^-1 R0^-T``."""
 
     def __init__(self, problems, count, n):
         dim = count * n
+        self.n = n
         self.V0 = np.zeros((problems, n, dim))
         self.R = np.zeros((problems, dim, dim))
         self.P0 = np.zeros((problems, n, n))
 
-    def add(self, problem, V0, R, P0):
-        """Add rows whose problems ``problem`` (rows,) are sorted (contiguous segments)."""
+    def add(self, problem, V0, cross, P0):
+        """Add samples (last axis) whose problems ``problem`` (rows,) are sorted (contiguous
+        segments): ``V0`` (n, Nn, rows), the block rows ``cross`` of ``R`` left of its
+        diagonal (:func:`_sample_whitened_last`) and ``P0`` (n, n, rows)."""
         starts = np.flatnonzero(np.r_[True, problem[1:] != problem[:-1]])
         owners = problem[starts]
-        self.V0[owners] += np.add.reduceat(V0, starts, axis=0)
-        self.R[owners] += np.add.reduceat(R, starts, axis=0)
-        self.P0[owners] += np.add.reduceat(P0, starts, axis=0)
+        n = self.n
+        self.V0[owners] += np.moveaxis(np.add.reduceat(V0, starts, axis=-1), -1, 0)
+        self.P0[owners] += np.moveaxis(np.add.reduceat(P0, starts, axis=-1), -1, 0)
+        for j, block in enumerate(cross, start=1):
+            self.R[owners, j * n:(j + 1) * n, :j * n] += np.moveaxis(
+                np.add.reduceat(block, starts, axis=-1), -1, 0)
+
+    def means(self, samples):
+        """The means of ``V0``, ``R`` (its identity diagonal blocks and the exact transposes
+        of the blocks left of them, as every sample has) and ``R0^-1 R0^-T``."""
+        dim = self.R.shape[-1]
+        R = self.R / samples
+        R = R + np.swapaxes(R, -1, -2)  # the blocks right of the diagonal (exact transposes)
+        R[:, np.arange(dim), np.arange(dim)] = 1.0  # the identity diagonal blocks
+        return self.V0 / samples, R, self.P0 / samples
 
 
 def _finish(x, whitening, V0_mean, R_mean, P0_mean):
@@ -593,14 +768,17 @@ def bayesian_fusion(xs: ArrayLike, Ps: ArrayLike, dof: Optional[float] = None,
     raises ``IllConditionedError``.
 
     Cost and memory: M whitened samples and M QR factorisations of (N n) x n matrices per
-    fusion, processed in chunks of about 2^19 / (N n)^2 samples, problem after problem; the
-    memory is that of one chunk (a few dozen MB) plus O((N n)^2) per problem, whatever M
-    (28 MB traced for M = 1e6 and two 4-D estimates). Randomness: normal and chi-square
+    fusion, processed in chunks of about 2^16 / (N n)^2 samples, problem after problem, with
+    the samples along the last axis (the per-sample Cholesky factorisations, triangular
+    solves and Householder QR are loops over matrix rows and columns whose every step is one
+    vectorised pass over the chunk's samples); the memory is that of one chunk (a few MB)
+    plus O((N n)^2) per problem, whatever M (3 MB traced for M = 1e6 and two 4-D
+    estimates). Randomness: normal and chi-square
     deviates come from two generators derived from ``rng`` (a SeedSequence seeded by four
     draws of ``rng``), each consumed sample after sample, so the chunking does not change
     the draws; :func:`sample_joint_covariances` with the same seed draws the same whitened
     samples. Vectorised over samples and batch; Python loops run over chunks, stages and
-    matrix rows.
+    matrix rows and columns.
 
     References
     ----------
@@ -641,15 +819,17 @@ def _bayesian_fusion(est, dof=None, samples=100, rng=None):
     sums = _Accumulator(problems, count, n)
     normal_rng, chi_rng, _ = _streams(rng)
     total, chunk = problems * samples, _chunk_rows(dim)
+    E0 = np.ascontiguousarray(whitening.E0.transpose(1, 2, 0))  # (Nn, n, problems)
     for start in range(0, total, chunk):
         stop = min(start + chunk, total)
         problem = np.arange(start, stop) // samples
-        H, R = _sample_whitened(stop - start, count, n, dof, normal_rng, chi_rng)
-        E0 = whitening.E0 if problems == 1 else whitening.E0[problem]
-        V0, P0 = _whitened_blue(H, E0)
-        sums.add(problem, V0, R, P0)
-    x_hat, P_hat, gains, sample_P_mean = _finish(
-        x, whitening, sums.V0 / samples, sums.R / samples, sums.P0 / samples)
+        rows = stop - start
+        H, cross = _sample_whitened_last(rows, count, n, dof, normal_rng, chi_rng)
+        V0, P0 = _whitened_blue_last(H, E0 if problems == 1 else E0[..., problem])
+        if rows == 1:  # the copy that kept the arithmetic that of any chunk (_draws_last)
+            V0, P0, cross = V0[..., :1], P0[..., :1], [block[..., :1] for block in cross]
+        sums.add(problem, V0, cross, P0)
+    x_hat, P_hat, gains, sample_P_mean = _finish(x, whitening, *sums.means(samples))
     _check_result(x_hat, P_hat, gains, P)
     info = {"dof": dof, "samples": samples,
             "sample_P_mean": sample_P_mean.reshape(batch + (n, n))}

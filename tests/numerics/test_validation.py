@@ -1,8 +1,11 @@
 """Input checking shared by every rule (cifilter._numerics.validation): directly and through
 public calls."""
 
+import re
+
 import numpy as np
 import pytest
+import scipy.linalg
 from hypothesis import given
 from hypothesis import strategies as st
 from strategies import ill_conditioned_sets
@@ -651,3 +654,105 @@ def test_semidefinite_tolerance_is_1e_10_of_the_largest_entry():
         check_psd(scale * np.diag([1.0, -0.5e-10]), 2, "Q")  # rounding: accepted
         with pytest.raises(ValueError, match="Q must be positive semidefinite"):
             check_psd(scale * np.diag([1.0, -2e-10]), 2, "Q")
+
+
+# ------------------------------------------------------------------ the lean paths (issue 24)
+def _set(M, where, value):
+    M[where] = value
+
+
+def _huge_off_diagonal(M):
+    M[0, 0] = M[2, 2] = 1e308
+    M[2, 0] = M[0, 2] = 9.5e307
+
+
+# Every way a covariance can be bad that the one pass over finiteness and symmetry tells
+# apart, with the message the general path has always given (Ps[...] names the matrix)
+EDITS = [
+    (lambda M: _set(M, (1, 1), np.nan), r"contains non-finite values \(NaN or inf\)$"),
+    (lambda M: _set(M, (2, 0), np.inf), r"contains non-finite values \(NaN or inf\)$"),
+    (lambda M: _set(M, (0, 2), -np.inf), r"contains non-finite values \(NaN or inf\)$"),
+    (lambda M: (_set(M, (2, 0), np.inf), _set(M, (0, 2), np.inf)),  # symmetric infinities
+     r"contains non-finite values \(NaN or inf\)$"),
+    # finite entries whose P + P^T overflows: the symmetrised copy is not finite
+    (lambda M: _set(M, (1, 1), 1.5e308),
+     r"is not positive definite: it has non-finite entries \(NaN or inf\)$"),
+    (_huge_off_diagonal, r"is not positive definite: it has non-finite entries \(NaN or inf\)$"),
+    # finite entries whose difference overflows: asymmetric, not non-finite
+    (lambda M: (_set(M, (2, 0), 1.5e308), _set(M, (0, 2), -1.5e308)),
+     r"is not symmetric \(max \|P - P\^T\| = inf\)$"),
+    (lambda M: _set(M, (2, 0), M[2, 0] + 1e-3), r"is not symmetric \(max \|P - P\^T\| = 0\.001\)$"),
+    (lambda M: _set(M, (1, 1), -50.0), r"is not positive definite \(smallest eigenvalue -"),
+]
+
+
+def _estimates_input(batch, seed=3, n=3):
+    g = np.random.default_rng(seed)
+    A = g.standard_normal(batch + (2, n, n))
+    return g.standard_normal(batch + (2, n)), A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(n)
+
+
+@pytest.mark.parametrize("batch, where", [((), "Ps[1]"), ((5,), "Ps[3, 1]"),
+                                          ((300,), "Ps[298, 1]")])  # 600 matrices: by columns
+@pytest.mark.parametrize("form", ["array", "sequence"])
+@pytest.mark.parametrize("edit, message", EDITS)
+def test_every_path_rejects_bad_covariances_with_the_same_message(batch, where, form, edit,
+                                                                  message):
+    """One pair (LAPACK per matrix), a short stack (P - P^T at once) and a long one (tested
+    column by column), given as one array or as a sequence (the lean path for float64
+    arrays): the same checks, the same messages, naming the same matrix."""
+    xs, Ps = _estimates_input(batch)
+    index = (batch[0] - 2,) if batch else ()
+    edit(Ps[index + (1,)])
+    if form == "sequence":
+        xs, Ps = [xs[..., i, :] for i in range(2)], [Ps[..., i, :, :] for i in range(2)]
+    with np.errstate(over="ignore", invalid="ignore"):
+        with pytest.raises(ValueError, match=f"^{re.escape(where)} " + message):
+            as_estimates(xs, Ps)
+
+
+@pytest.mark.parametrize("batch", [(), (5,), (300,)])
+@pytest.mark.parametrize("column", [False, True])
+@pytest.mark.parametrize("asymmetric", [False, True])
+def test_lean_paths_return_what_the_general_path_returns(batch, column, asymmetric):
+    """Sequences of float64 arrays (the lean path) and the same numbers as nested lists (the
+    general path) give the same Estimates, bit for bit; exactly symmetric covariances come
+    back unchanged, rounding-asymmetric ones as (P + P^T) / 2; nothing aliases the input.
+    One pair without batch axes is factorised matrix by matrix by LAPACK (as before)."""
+    xs, Ps = _estimates_input(batch, seed=4)
+    if asymmetric:  # filterpy-style rounding, far inside SYMMETRY_RTOL
+        Ps[..., 2, 0] *= 1.0 + 1e-13
+    x_items = [xs[..., i, :, None] if column else xs[..., i, :] for i in range(2)]
+    P_items = [Ps[..., i, :, :].copy() for i in range(2)]
+    lean = as_estimates(x_items, P_items)
+    general = as_estimates([x.tolist() for x in x_items], [P.tolist() for P in P_items])
+    expected_P = 0.5 * (Ps + np.swapaxes(Ps, -1, -2))
+    np.testing.assert_array_equal(lean.P, expected_P)
+    np.testing.assert_array_equal(lean.x, xs)
+    assert lean.column is general.column is column
+    np.testing.assert_array_equal(general.P, lean.P)
+    np.testing.assert_array_equal(general.x, lean.x)
+    if batch:
+        np.testing.assert_array_equal(lean.L, general.L)
+    else:
+        for i in range(2):
+            np.testing.assert_array_equal(lean.L[i], scipy.linalg.cholesky(lean.P[i],
+                                                                           lower=True))
+    for array in (*x_items, *P_items):
+        for result in (lean.x, lean.P, lean.L):
+            assert not np.shares_memory(array, result)
+    if not asymmetric:  # P_items unchanged: exactly symmetric in, the same numbers out
+        np.testing.assert_array_equal(lean.P, np.stack(P_items, axis=-3))
+
+
+def test_check_symmetric_and_check_covariances_still_return_new_arrays():
+    """The public checks keep returning the symmetrised copy, also for an exactly symmetric
+    long stack (only as_estimates may hand back its own private copy unchanged)."""
+    _, Ps = _estimates_input((300,), seed=5)
+    S = check_symmetric(Ps)
+    P, L = check_covariances(Ps)
+    for result in (S, P, L):
+        assert not np.shares_memory(result, Ps)
+    np.testing.assert_array_equal(S, Ps)
+    np.testing.assert_array_equal(P, Ps)
+    np.testing.assert_array_equal(L, np.linalg.cholesky(Ps))
