@@ -129,8 +129,9 @@ def _difference_basis(count, n):
     return np.kron(H, np.eye(n))
 
 
-def _blue_cholesky(J, count, n):
-    """Eqs. (18)-(19) through Cholesky factors; None if the joint is (nearly) singular.
+def _blue_factors(J, E, n):
+    """``(J^-1 E, (E^T J^-1 E)^-1)`` through Cholesky factors; None if the joint (or the
+    fused information) is (nearly) singular.
 
     Used when the joint's Cholesky pivots show a condition number of at most
     MAX_CONDITION (so always within the conditioning contract).
@@ -144,16 +145,23 @@ def _blue_cholesky(J, count, n):
         pivots.min(axis=-1) * np.sqrt(MAX_CONDITION) < pivots.max(axis=-1)
     ):
         return None  # (max_i L_ii / min_i L_ii)^2 <= cond(J): certainly too ill-conditioned
-    E = _stacked_identity(count, n)
-    A = cho_solve(L, np.broadcast_to(E, L.shape[:-1] + (n,)))  # P_x^-1 E
-    information = symmetrize(np.swapaxes(A, -1, -2) @ E)  # E^T P_x^-1 E
+    A = cho_solve(L, np.broadcast_to(E, L.shape[:-1] + (n,)))  # J^-1 E
+    information = symmetrize(np.swapaxes(A, -1, -2) @ E)  # E^T J^-1 E
     try:
         L_information = np.linalg.cholesky(information)
     except np.linalg.LinAlgError:
         return None
     if not np.all(np.isfinite(L_information)):
         return None
-    P = cho_inverse(L_information)
+    return A, cho_inverse(L_information)
+
+
+def _blue_cholesky(J, count, n):
+    """Eqs. (18)-(19) through Cholesky factors; None if the joint is (nearly) singular."""
+    factors = _blue_factors(J, _stacked_identity(count, n), n)
+    if factors is None:
+        return None
+    A, P = factors
     blocks = A.reshape(A.shape[:-2] + (count, n, n))  # block i: rows i*n..(i+1)*n of A
     gains = P[..., None, :, :] @ np.swapaxes(blocks, -1, -2)  # K_i = P A_i^T
     return gains, P
@@ -339,24 +347,10 @@ def optimal_fusion(xs: ArrayLike, joint: ArrayLike) -> FusionResult:
 def _blue_partial_cholesky(J, E, n):
     """Eqs. (18)-(19) with the stacked observation matrix ``E`` (eq. (H6)) through Cholesky
     factors; None where the joint is (nearly) singular (as :func:`_blue_cholesky`)."""
-    try:
-        L = np.linalg.cholesky(J)
-    except np.linalg.LinAlgError:
+    factors = _blue_factors(J, E, n)
+    if factors is None:
         return None
-    pivots = np.diagonal(L, axis1=-2, axis2=-1)
-    if not np.all(np.isfinite(L)) or np.any(
-        pivots.min(axis=-1) * np.sqrt(MAX_CONDITION) < pivots.max(axis=-1)
-    ):
-        return None
-    A = cho_solve(L, np.broadcast_to(E, L.shape[:-1] + (n,)))  # J^-1 E
-    information = symmetrize(np.swapaxes(A, -1, -2) @ E)  # E^T J^-1 E
-    try:
-        L_information = np.linalg.cholesky(information)
-    except np.linalg.LinAlgError:
-        return None
-    if not np.all(np.isfinite(L_information)):
-        return None
-    P = cho_inverse(L_information)
+    A, P = factors
     return P @ np.swapaxes(A, -1, -2), P  # K = P E^T J^-1 (n x sum m_i)
 
 

@@ -238,9 +238,11 @@ def test_generalised_ci_bound_holds_in_the_worst_direction(problem, kind):
     gains = r.info["gains"]
     unbiased = sum(K @ full_H(H, n) for K, H in zip(gains, Hs))
     scale = 1.0 + max(np.abs(K @ full_H(H, n)).max() for K, H in zip(gains, Hs))
-    assert np.abs(unbiased - np.eye(n)).max() <= 1e3 * n * EPS * scale
-    K_pad, P_pad = padded(gains, Ps)
     cond = max(np.linalg.cond(P) for P in Ps)
+    # without a full-state estimate to absorb the remainder, sum K_i H_i = I holds to the
+    # rounding of the information form, which grows with the inputs' condition number
+    assert np.abs(unbiased - np.eye(n)).max() <= (1e3 * n + cond) * EPS * scale
+    K_pad, P_pad = padded(gains, Ps)
     assert_bound_holds(r.P, K_pad, P_pad, tol=(64.0 * n * len(Ps) + cond) * EPS)
     gap = float(r.info["gap"])
     assert np.isfinite(gap)
