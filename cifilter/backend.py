@@ -8,10 +8,15 @@ always available, and compiled kernels (``numba``, the optional extra
 ``pip install ".[fast]"`` from a clone, ``pip install "cifilter-fusion[fast]"`` once
 published), parallel over the batch.
 
-``"auto"`` (the default) uses the kernels when numba is installed and the validated inputs
-(float64) are a batch of at least :data:`AUTO_MIN_BATCH` problems; ``"numpy"`` never does;
-``"numba"`` always does where a kernel exists (even for one problem). Importing cifilter
-never imports numba; the kernels are compiled on first use and cached on disk.
+``"auto"`` (the default) uses the kernels when numba is installed, the validated inputs
+(float64) are a batch of at least :data:`AUTO_MIN_BATCH` problems and the kernels are
+ready; ``"numpy"`` never does; ``"numba"`` always does where a kernel exists (even for one
+problem). Importing cifilter never imports numba. Under ``"auto"`` a call never waits for
+a compile: kernels not compiled in this process are loaded from numba's on-disk cache when
+they are there, and otherwise numpy answers while they compile in a background thread
+(started once per process, with one :class:`CompileNotice`); ``python -m cifilter
+compile`` (:func:`compile_kernels`) compiles and caches them ahead of time. ``"numba"``
+compiles in the foreground on first use (the caller asked for the kernels).
 See ``docs/backend.rst``.
 """
 
@@ -19,10 +24,10 @@ import contextlib
 import importlib.util
 import threading
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, Callable, Optional
 
-__all__ = ["AUTO_MIN_BATCH", "BACKENDS", "get_backend", "numba_available", "set_backend",
-           "use_backend"]
+__all__ = ["AUTO_MIN_BATCH", "BACKENDS", "CompileNotice", "compile_kernels", "get_backend",
+           "numba_available", "set_backend", "use_backend"]
 
 BACKENDS = ("auto", "numpy", "numba")
 """The accepted backend names."""
@@ -34,7 +39,29 @@ Measured (``docs/backend.rst``): the kernels are faster than numpy for every bat
 pairs from 4 problems up; single fusions (no batch axes) stay on numpy under ``"auto"``, so
 that a filter's ``fuse`` never imports numba or waits for a compile."""
 
+
+
+class CompileNotice(UserWarning):
+    """Emitted once per process when ``"auto"`` first finds the kernels not compiled.
+
+    The call that emits it, and the next ones, use numpy while the kernels compile in a
+    background thread (about 10-40 s on two cores); then the kernels take over.
+    ``python -m cifilter compile`` (:func:`compile_kernels`) compiles and caches them ahead
+    of time, after which a new process loads them from the cache without a notice.
+
+    Examples
+    --------
+    >>> import warnings
+    >>> from cifilter.backend import CompileNotice
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("ignore", CompileNotice)  # silence the notice here
+    >>> issubclass(CompileNotice, UserWarning)
+    True
+    """
+
+
 _state = threading.local()
+_compilers: list[Callable[..., Any]] = []
 _default = ["auto"]
 _available: list[bool] = []
 
@@ -175,6 +202,49 @@ def use_backend(name: str) -> Iterator[str]:
         yield name
     finally:
         stack.pop()
+
+
+def register_compiler(compiler: Callable[..., Any]) -> None:
+    """Register the function that compiles every kernel (private to the package: the
+    kernels' room registers it, since this module imports nothing of cifilter)."""
+    if compiler not in _compilers:
+        _compilers.append(compiler)
+
+
+def compile_kernels(progress: Optional[Callable[[str, float, str], None]] = None
+                    ) -> list[tuple[str, float, str]]:
+    """Compile every compiled kernel now, in the foreground, and cache it on disk.
+
+    What ``python -m cifilter compile`` runs. Afterwards ``"auto"`` uses the kernels in
+    this process, and a new process loads them from numba's on-disk cache (in
+    milliseconds) instead of compiling them.
+
+    Parameters
+    ----------
+    progress : callable, optional
+        Called as ``progress(name, seconds, how)`` after each kernel.
+
+    Returns
+    -------
+    list of (str, float, str)
+        Per kernel: its name, the seconds it took, and ``"compiled"``, ``"loaded from
+        cache"`` or ``"already compiled"``.
+
+    Raises
+    ------
+    ValueError
+        numba is not installed.
+
+    Examples
+    --------
+    >>> from cifilter.backend import compile_kernels, numba_available
+    >>> if numba_available():  # doctest: +SKIP
+    ...     compile_kernels()
+    """
+    _check("numba")
+    if not _compilers:  # pragma: no cover - ``import cifilter`` registers it
+        raise RuntimeError("no kernels registered: import cifilter first")
+    return list(_compilers[0](**({} if progress is None else {"progress": progress})))
 
 
 def use_kernels(batch_size: int, *arrays: Any) -> bool:

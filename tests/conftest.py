@@ -8,7 +8,7 @@ import pytest
 from hypothesis import HealthCheck, settings
 
 import cifilter
-from cifilter.backend import numba_available
+from cifilter.backend import compile_kernels, numba_available
 
 matplotlib.use("Agg")
 
@@ -34,6 +34,15 @@ settings.load_profile(os.environ.get("CIFILTER_HYPOTHESIS_PROFILE", default_prof
 # installed (the test extra installs it). "numba" forces the kernels for every problem,
 # single ones included, so that each test of the numpy path also checks the kernels.
 TEST_BACKENDS = ["numpy", "numba"] if numba_available() else ["numpy"]
+
+
+def pytest_configure(config):
+    """Compile the kernels once, before the workers start (what ``python -m cifilter
+    compile`` does), so every process's ``"auto"`` uses them from its first call: results
+    under ``"auto"`` then do not depend on whether a background compilation has finished
+    (several tests compare in-process and Dask runs bitwise)."""
+    if numba_available() and not hasattr(config, "workerinput"):
+        compile_kernels()
 
 
 @pytest.fixture(params=TEST_BACKENDS)

@@ -14,9 +14,32 @@ import numpy as np
 from .._numerics.criteria import criterion_report, gap_converged
 from .._numerics.information import reference_estimates
 from .._numerics.validation import Estimates
-from ..backend import use_kernels
+from ..backend import get_backend, use_kernels
+from . import background
 
-__all__ = ["optimal_pair", "weighted"]
+__all__ = ["optimal_pair", "report", "weighted"]
+
+_calls = {"kernels": 0, "numpy_while_compiling": 0}
+
+
+def _go(size, *arrays):
+    """Whether this call runs on the kernels. Under ``"auto"`` only when they are ready
+    (compiled in this process or loaded from numba's cache): a call never waits for a
+    compile; the first one that finds them missing starts the background compilation."""
+    if not use_kernels(size, *arrays):
+        return False
+    if get_backend() == "auto" and not background.ready():
+        _calls["numpy_while_compiling"] += 1
+        return False
+    _calls["kernels"] += 1
+    return True
+
+
+def report():
+    """Where this process's eligible calls went: ``kernels`` (calls run on the kernels),
+    ``numpy_while_compiling`` (calls under ``"auto"`` that numpy answered because the
+    kernels were not ready), and the kernels' readiness (:func:`background.status`)."""
+    return dict(_calls, **background.status())
 
 _KINDS = {"trace": 0, "det": 1, "weighted-trace": 2, None: 3}
 
@@ -85,7 +108,7 @@ def optimal_pair(est, kind, W, numpy_path):
     ``numpy_path(sub_estimates, sub_W)`` solves the items the kernel hands back.
     """
     size = _size(est)
-    if not use_kernels(size, est.x, est.P, est.L):
+    if not _go(size, est.x, est.P, est.L):
         return None
     shape, n = est.batch_shape, est.dim
     x, P, L = _flat(est, size)
@@ -127,7 +150,7 @@ def weighted(est, weights, kind, W, numpy_path):
     numpy path's error for those it cannot fuse either).
     """
     size = _size(est)
-    if not use_kernels(size, est.x, est.P, est.L, weights):
+    if not _go(size, est.x, est.P, est.L, weights):
         return None
     shape, n, count = est.batch_shape, est.dim, est.count
     x, _, L = _flat(est, size)

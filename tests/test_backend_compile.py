@@ -1,0 +1,109 @@
+"""No foreground compile stall (issue 24): under ``"auto"`` a call never waits for numba.
+
+Each check runs in a fresh process with ``NUMBA_CACHE_DIR`` set to a temporary directory
+(empty at first), and reads where the calls went from the dispatcher's report
+(``cifilter._kernels.dispatch.report()``), not from timings: the first batched call is
+answered by numpy and emits one :class:`cifilter.backend.CompileNotice`; after
+``python -m cifilter compile`` a new process's first call runs on the kernels, loaded
+from the cache, and agrees with the numpy answer to the documented bound
+(``docs/backend.rst``: optimal weights, ``omega`` and ``P`` to ``1e-9``).
+"""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cifilter.backend import numba_available
+
+needs_numba = pytest.mark.skipif(not numba_available(), reason="numba is not installed")
+
+# One process: 1000 pairs of 4x4 covariances, two "auto" calls, the report after each, the
+# notices, and the first result saved to OUT.
+FIRST_CALLS = """
+import json, sys, warnings
+import numpy as np
+import cifilter
+from cifilter._kernels import dispatch
+
+rng = np.random.default_rng(7)
+A = rng.standard_normal((1000, 2, 4, 4))
+Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(4)
+xs = rng.standard_normal((1000, 2, 4))
+reports = []
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    first = cifilter.covariance_intersection(xs, Ps)
+    reports.append(dispatch.report())
+    cifilter.covariance_intersection(xs, Ps)
+    reports.append(dispatch.report())
+np.savez(sys.argv[1], omega=first.omega, P=first.P, x=first.x)
+notices = [str(w.message) for w in caught
+           if issubclass(w.category, cifilter.backend.CompileNotice)]
+print(json.dumps({"reports": reports, "notices": notices,
+                  "backend": cifilter.get_backend()}))
+"""
+
+
+def _run(args, cache):
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    return subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env,
+                          timeout=900)
+
+
+def _first_calls(cache, out):
+    done = _run(["-c", FIRST_CALLS, str(out)], cache)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@needs_numba
+def test_first_auto_call_uses_numpy_and_after_compile_a_new_process_uses_the_kernels(tmp_path):
+    cache = tmp_path / "numba-cache"
+    cache.mkdir()
+
+    # 1. empty cache: numpy answers, the compilation runs in the background, one notice
+    before = _first_calls(cache, tmp_path / "before.npz")
+    assert before["backend"] == "auto"
+    first = before["reports"][0]
+    assert first["kernels"] == 0
+    assert first["numpy_while_compiling"] == 1
+    assert first["ready"] is False
+    assert len(before["notices"]) == 1, before["notices"]
+    assert "python -m cifilter compile" in before["notices"][0]
+
+    # 2. compile ahead of time, in the foreground, into the same cache
+    done = _run(["-m", "cifilter", "compile"], cache)
+    assert done.returncode == 0, done.stderr
+    for name in ("ci_pair_optimal", "ci_pair_optimal_serial", "weighted_fusion",
+                 "weighted_fusion_serial"):
+        assert name in done.stdout
+    assert "4 kernels ready in" in done.stdout
+
+    # 3. a new process: its first call runs on the kernels (loaded from the cache), silently
+    after = _first_calls(cache, tmp_path / "after.npz")
+    assert after["reports"][0]["kernels"] == 1
+    assert after["reports"][0]["numpy_while_compiling"] == 0
+    assert after["reports"][0]["ready"] is True
+    assert after["reports"][1]["kernels"] == 2
+    assert after["notices"] == []
+
+    # 4. the two answers agree to the documented bound of the optimal weights
+    a, b = np.load(tmp_path / "before.npz"), np.load(tmp_path / "after.npz")
+    np.testing.assert_allclose(a["omega"], b["omega"], rtol=0, atol=1e-9)
+    scale = np.abs(a["P"]).max(axis=(-2, -1), keepdims=True)
+    assert (np.abs(a["P"] - b["P"]) <= 1e-9 * scale).all()
+
+
+def test_compile_without_numba_is_a_one_line_error(tmp_path):
+    code = ("import sys; sys.modules['numba'] = None\n"
+            "from cifilter.cli.main import main\n"
+            "sys.exit(main(['compile']))")
+    done = _run(["-c", code], tmp_path)
+    assert done.returncode == 1
+    assert done.stderr.count("\n") == 1
+    assert "numba is not installed" in done.stderr
+
