@@ -167,18 +167,9 @@ def _blue_cholesky(J, count, n):
     return gains, P
 
 
-def _blue_semidefinite(J, count, n, name):
-    """The BLUE for a positive semidefinite, possibly singular joint (failure-safe path).
-
-    In the orthonormal coordinates ``a = E^T x / sqrt(N)`` (the scaled mean of the
-    estimates) and ``b = B^T x`` (differences, free of the state because ``B^T E = 0``),
-    every unbiased fusion is ``x_0 = (a - G b) / sqrt(N)``; the minimiser of the error
-    covariance of eq. (13) is the regression ``G = J_ab J_bb^+`` and the error covariance is
-    ``K J K^T`` with ``K = (E^T / sqrt(N) - G B^T) / sqrt(N)`` (eq. (19) when J is
-    non-singular). The pseudo-inverse drops eigenvalues of ``J_bb`` at rounding level,
-    ``RANK_RTOL * N n * trace(J)``. The error covariance is unique; when ``J_bb`` is
-    singular the gains are not, and these are the minimum-norm ones.
-    """
+def _semidefinite_tolerance(J, name):
+    """The rank tolerance ``RANK_RTOL * size * trace(J)`` per joint, after checking that
+    each joint is positive semidefinite to it (a clear error naming the worst one)."""
     # >= the largest eigenvalue of a PSD joint (its trace)
     scale = np.abs(np.diagonal(J, axis1=-2, axis2=-1)).sum(axis=-1)
     tol = RANK_RTOL * J.shape[-1] * scale
@@ -194,6 +185,22 @@ def _blue_semidefinite(J, count, n, name):
             f"{where} is not positive semidefinite (smallest eigenvalue "
             f"{float(smallest[index]):.3g}, largest {float(eigenvalues[index][-1]):.3g})"
         )
+    return tol
+
+
+def _blue_semidefinite(J, count, n, name):
+    """The BLUE for a positive semidefinite, possibly singular joint (failure-safe path).
+
+    In the orthonormal coordinates ``a = E^T x / sqrt(N)`` (the scaled mean of the
+    estimates) and ``b = B^T x`` (differences, free of the state because ``B^T E = 0``),
+    every unbiased fusion is ``x_0 = (a - G b) / sqrt(N)``; the minimiser of the error
+    covariance of eq. (13) is the regression ``G = J_ab J_bb^+`` and the error covariance is
+    ``K J K^T`` with ``K = (E^T / sqrt(N) - G B^T) / sqrt(N)`` (eq. (19) when J is
+    non-singular). The pseudo-inverse drops eigenvalues of ``J_bb`` at rounding level,
+    ``RANK_RTOL * N n * trace(J)``. The error covariance is unique; when ``J_bb`` is
+    singular the gains are not, and these are the minimum-norm ones.
+    """
+    tol = _semidefinite_tolerance(J, name)
     E = _stacked_identity(count, n)
     B = _difference_basis(count, n)
     root = np.sqrt(count)
@@ -360,20 +367,7 @@ def _blue_partial_semidefinite(J, E, n, name):
     is ``R^-1 (Q_1^T - G Q_2^T) z``, and ``G = J_ab J_bb^+`` (``J_ab = Q_1^T J Q_2``,
     ``J_bb = Q_2^T J Q_2``) minimises its error covariance (as :func:`_blue_semidefinite`,
     whose ``E`` is the stacked identity)."""
-    scale = np.abs(np.diagonal(J, axis1=-2, axis2=-1)).sum(axis=-1)
-    tol = RANK_RTOL * J.shape[-1] * scale
-    if np.any(scale == 0):
-        raise ValueError(f"{name} has a zero diagonal: the estimates have zero error "
-                         "covariance and there is nothing to fuse")
-    eigenvalues = np.linalg.eigvalsh(J)
-    if np.any(eigenvalues[..., 0] < -tol):
-        smallest = eigenvalues[..., 0]
-        index = np.unravel_index(int(np.argmin((smallest / scale).ravel())), smallest.shape)
-        where = f"{name}[{', '.join(map(str, index))}]" if index else name
-        raise ValueError(
-            f"{where} is not positive semidefinite (smallest eigenvalue "
-            f"{float(smallest[index]):.3g}, largest {float(eigenvalues[index][-1]):.3g})"
-        )
+    tol = _semidefinite_tolerance(J, name)
     Q, R = np.linalg.qr(E, mode="complete")
     Q1, Q2, R = Q[:, :n], Q[:, n:], R[:n]
     JQ2 = J @ Q2
