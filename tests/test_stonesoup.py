@@ -701,7 +701,7 @@ def test_partial_detection_errors():
     with pytest.raises(ValueError, match=r"matrix\(\) of shape \(2, 6\).* 4 dimensions"):
         FusionUpdater().predict_measurement(prediction, LinearGaussian(6, [0, 2], R))
     # the rules that do not accept H= say which do
-    for method, options in (("pci", {"rho": 0.3}), ("ei", None)):
+    for method, options in (("ei", None),):
         with pytest.raises(ValueError, match="does not accept H=; the rules that accept H "
                                              "are 'ci', 'naive'"):
             FusionUpdater(method=method, options=options).update(

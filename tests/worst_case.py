@@ -175,8 +175,9 @@ def _least_total(c, Z, rho, steps=50):
         y = found.x[:k]
         x = c + Z @ y - 1.0 + rho
     for _ in range(steps):
-        gradient = -rho * Z.T @ (1.0 / x**2)
-        hessian = 2.0 * rho * (Z.T * (1.0 / x**3)) @ Z
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+            gradient = -rho * Z.T @ (1.0 / x**2)
+            hessian = 2.0 * rho * (Z.T * (1.0 / x**3)) @ Z
         if not (np.isfinite(gradient).all() and np.isfinite(hessian).all()):
             break  # an x_i near 0 overflowed: keep the last y (the caller checks t itself)
         step = -np.linalg.lstsq(hessian, gradient, rcond=None)[0]

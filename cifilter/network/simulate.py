@@ -757,7 +757,10 @@ def _fuse_groups(record, groups, fused_x, fused_P, messages_x, messages_P, maps,
                 flat = rows.reshape(r_idx.size, (c + 1) * n, size)
             joint = flat @ base[r_idx] @ np.swapaxes(flat, -1, -2)
             joint = 0.5 * (joint + np.swapaxes(joint, -1, -2))
-            call_options.update(record.options_given_truth(joint, rng, count=c + 1))
+            sizes = ([n] + [n if S is None else S.shape[0] for S in matrices]
+                     if partial else None)
+            call_options.update(record.options_given_truth(joint, rng, count=c + 1,
+                                                           sizes=sizes))
         result = fuse(estimates, method=record.name, **front, **call_options)
         fused_x[r_idx, i_idx] = np.asarray(result.x).reshape(r_idx.size, n)
         fused_P[r_idx, i_idx] = result.P

@@ -11,19 +11,21 @@ Derivations: ``docs/methods/pci.rst``.
 
 import numpy as np
 
+from .._numerics.alignment import unobserved_directions
 from .._numerics.information import (
     information_factors,
     single_diagonalisation_trusted,
     squared_norms,
     trace_curvature,
 )
-from .._numerics.linalg import eigh_single, lower_inverse_single, symmetrize
+from .._numerics.linalg import eigh_single, ill_conditioned, lower_inverse_single, symmetrize
 from .._numerics.optimize import (
     minimize_convex_scalar,
     minimize_convex_segment,
     minimize_convex_simplex,
 )
 from .._numerics.validation import as_float_array, check_finite
+from ._generalised_ci import check_observable, generalised_assembly, square_roots
 
 __all__ = [
     "NEWTON_RHO_FLOOR",
@@ -32,7 +34,11 @@ __all__ = [
     "check_rho",
     "effective_rho",
     "gains_bound",
+    "negligible_rho",
     "newton_delta",
+    "partial_state_bound",
+    "partial_state_fusion",
+    "partial_state_roots",
     "partial_weights",
     "relative_gap",
     "weight_derivatives",
@@ -62,15 +68,28 @@ def check_rho(rho, count, batch_shape):
         ) from None
 
 
+def negligible_rho(count):
+    """The largest bound ``rho_i`` whose effect on the bound is below one rounding unit.
+
+    ``eps^2 / (4 N^2)`` (about 1.2e-33 for two estimates): setting every ``rho_i`` at or
+    below it to 0 changes the worst admissible error variance along any direction by at
+    most a factor ``1 + 2 sqrt(N sum_Z rho_i) <= 1 + eps`` (``docs/methods/pci.rst``,
+    "Bounds below rounding"), so the bound of the zeroed problem dominates the true worst
+    case to rounding, and the rule answers exactly as for ``rho_i = 0``.
+    """
+    return np.finfo(float).eps ** 2 / (4.0 * count * count)
+
+
 def effective_rho(rho):
-    """The bounds the rule uses: for two estimates ``sqrt(rho_1 rho_2)`` for both.
+    """The bounds the rule uses: for two estimates ``sqrt(rho_1 rho_2)`` for both, and 0
+    for a bound whose effect is below rounding (:func:`negligible_rho`).
 
     Definition 2 for two vectors is Lemma 3's condition with ``rho = sqrt(rho_1 rho_2)``,
     and Theorem 3 (the trace-minimal bound) takes one common ``rho``.
     """
     if rho.shape[-1] == 2:
-        return np.sqrt(rho[..., :1] * rho[..., 1:]).repeat(2, axis=-1)
-    return rho
+        rho = np.sqrt(rho[..., :1] * rho[..., 1:]).repeat(2, axis=-1)
+    return np.where(rho <= negligible_rho(rho.shape[-1]), 0.0, rho)
 
 
 def partial_weights(delta, rho):
@@ -210,15 +229,94 @@ def gains_bound(gains, Ps, weights):
     return symmetrize(np.einsum("...k,...kij->...ij", scale, terms))
 
 
-def bound_and_spread(delta, rho, L_inv):
+def partial_state_bound(gains, Ps, weights):
+    """:func:`gains_bound` for estimates of ``H_i x``: ``P = sum_i K_i P_i K_i^T / w_i``.
+
+    ``gains`` and ``Ps`` are tuples of N arrays, (..., n, m_i) and (..., m_i, m_i): each
+    term from the input ``P_i`` in compensated arithmetic, as for full states (Lemma 7
+    holds for rectangular gains, ``docs/methods/partial_state.rst``, eq. (H10)). Exactly
+    symmetric; a zero weight has a zero gain and no term.
+    """
+    P = None
+    for i, (K, Pi) in enumerate(zip(gains, Ps)):
+        Pi = np.broadcast_to(Pi, K.shape[:-2] + Pi.shape[-2:])
+        term = symmetrize(_compensated_congruence(K, Pi))
+        w = weights[..., i, None, None]
+        positive = w > 0.0
+        term = np.where(positive, term / np.where(positive, w, 1.0), 0.0)
+        P = term if P is None else P + term
+    return symmetrize(P)
+
+
+def partial_state_roots(est):
+    """The square roots ``G_i`` (..., N, n, n) of estimates of ``H_i x``
+    (:func:`cifilter.rules._generalised_ci.square_roots`), after the check that the
+    estimates together observe the state (the error names the unobserved directions)."""
+    roots = square_roots(est)
+    check_observable(est, roots)
+    return roots
+
+
+def partial_state_fusion(est, roots, weights):
+    """Partial CI's fused mean, gains and bound for estimates of ``H_i x`` at ``weights``.
+
+    ``P^-1 = sum_i w_i H_i^T P_i^-1 H_i``, ``K_i = w_i P H_i^T P_i^-1`` (eqs. (H10)-(H11)
+    of ``docs/methods/partial_state.rst``), with the gains of generalised CI's assembly
+    (:func:`cifilter.rules._generalised_ci.generalised_assembly`: where some estimate is of
+    the full state, the one of largest weight takes ``I - sum_j K_j H_j``) and ``P`` the
+    bound of exactly these gains from the inputs (:func:`partial_state_bound`). Returns
+    ``(x, P, gains, factors)``; ``gains`` a tuple of (..., n, m_i) arrays. Weights that
+    drop the only estimate of some direction raise a ValueError naming the directions.
+    """
+    factors = information_factors(roots.G, weights, failures="nan")
+    singular = np.isnan(factors.R[..., 0, 0])
+    if np.any(singular):
+        index = np.unravel_index(int(np.argmax(singular.ravel())), singular.shape)
+        used = [i for i in range(est.count) if weights[index + (i,)] > 0.0]
+        G = np.concatenate([roots.G[index + (i,)] for i in used], axis=0)
+        directions = unobserved_directions(G)
+        where = f" (problem {[int(i) for i in index]})" if index else ""
+        if not directions:
+            J = sum(weights[index + (i,)] * roots.G[index + (i,)].T @ roots.G[index + (i,)]
+                    for i in used)
+            raise ill_conditioned(
+                f"with the given delta{where}: the fused information "
+                "sum_i w_i H_i^T P_i^-1 H_i", np.linalg.cond(J))
+        shown = ", ".join(str(v) for v in directions)
+        raise ValueError(
+            f"with the given delta{where}: sum_i w_i H_i^T P_i^-1 H_i is singular (a "
+            f"delta_i = 0 with rho_i > 0 ignores estimate i); unobserved direction(s) of "
+            f"the state (a basis of its null space, in state coordinates): {shown}"
+        )
+    x, _, gains = generalised_assembly(est, roots, weights, factors)
+    full = list(est.full)
+    if full:
+        # Where every full-state estimate has weight 0 (delta_i = 0 at rho_i > 0), the
+        # assembly's remainder I - sum_j K_j H_j (rounding, amplified by the condition
+        # number) would be a gain with no term in the bound: ignore those estimates
+        # exactly, as the other zero weights, and fuse the rest.
+        dropped = weights[..., full].max(axis=-1) == 0.0
+        if np.any(dropped):
+            gains = list(gains)
+            for i in full:
+                gains[i] = np.where(dropped[..., None, None], 0.0, gains[i])
+            total = sum((K @ xi[..., None])[..., 0] for K, xi in zip(gains, est.x))
+            x = np.where(dropped[..., None], total, x)
+            gains = tuple(gains)
+    return x, partial_state_bound(gains, est.P, weights), gains, factors
+
+
+def bound_and_spread(delta, rho, L_inv, failures="raise"):
     """``w`` (24), the factors of ``P`` (33) and ``Tr(P P_i^-1 P)`` for every estimate.
 
     ``Tr(P P_i^-1 P) = ||B_i||_F^2`` with ``B_i = P L_i^-T`` (see
     :func:`cifilter._numerics.information.information_factors`): a sum of squares, accurate to
-    rounding whatever the conditioning.
+    rounding whatever the conditioning. ``L_inv`` may also be the square roots ``G_i`` of
+    estimates of ``H_i x`` (``G_i^T G_i = H_i^T P_i^-1 H_i``); ``failures="nan"`` gives NaN
+    factors where the fused information is singular.
     """
     w = partial_weights(delta, rho)
-    factors = information_factors(L_inv, w)
+    factors = information_factors(L_inv, w, failures=failures)
     spread = squared_norms(factors.B)
     return w, factors, spread
 
@@ -349,7 +447,22 @@ def _pair_newton(evaluate, objective, size, max_iter):
                                                   max_iter=max_iter)
     return delta, steps
 
-def newton_delta(L_inv, rho, tol, max_iter):
+def _released(delta, rho):
+    """The start of the sweeps after the Newton phase: ``delta_i = 0`` with a bound below
+    ``NEWTON_RHO_FLOOR`` raised to ``sqrt(rho_i)`` (then back onto the simplex).
+
+    ``delta_i = 0`` is a fixed point of step (25) (``w_i = 0`` there), so a weight the
+    floored Newton phase left at zero would stay there; but with the true ``rho_i`` the
+    slope of ``Tr P`` at ``delta_i = 0`` is ``-Tr(P P_i^-1 P) / rho_i``, and the optimum
+    lies near ``delta_i ~ sqrt(rho_i)`` (``docs/methods/pci.rst``), where the sweeps take it
+    at once.
+    """
+    lift = (delta == 0.0) & (rho > 0.0) & (rho < NEWTON_RHO_FLOOR)
+    start = np.where(lift, np.sqrt(rho), delta)
+    return start / start.sum(axis=-1, keepdims=True)
+
+
+def newton_delta(L_inv, rho, tol, max_iter, *, partial=False):
     """Minimise ``Tr P(delta)`` (eq. (35)) by the active-set Newton method on the simplex.
 
     Gradient ``g_i = -w_i' Tr(P I_i P)`` and Hessian
@@ -366,39 +479,70 @@ def newton_delta(L_inv, rho, tol, max_iter):
     (:func:`alternating_delta`). Two estimates run the interval Newton method of
     two-estimate CI on ``delta = (t, 1 - t)``. Returns ``delta`` and the iterations
     (Newton steps plus sweeps) per problem.
+
+    ``partial=True``: ``L_inv`` holds the square roots ``G_i`` of estimates of ``H_i x``
+    (``docs/methods/partial_state.rst``), whose fused information is singular where a zero
+    weight drops the only estimate of some direction. Every N then runs the simplex method
+    with the trace +inf at such points (its line searches reject them), and where its last,
+    unchecked step lands on one, the best finite point it evaluated is taken, as for
+    generalised CI.
     """
     true_rho = rho
     batch, count = rho.shape[:-1], rho.shape[-1]
     size = int(np.prod(batch, dtype=int))
     flat_L_inv = L_inv.reshape((size,) + L_inv.shape[-3:])
     floored = np.where(rho > 0.0, np.maximum(rho, NEWTON_RHO_FLOOR), 0.0).reshape(size, count)
+    failures = "nan" if partial else "raise"
+    best_f = np.full(size, np.inf)
+    best_delta = np.full((size, count), 1.0 / count)
+
+    def remember(delta, index, f):
+        if not partial:
+            return f
+        f = np.where(np.isnan(f), np.inf, f)
+        better = np.isfinite(f) & (f < best_f[index])
+        best_f[index[better]] = f[better]
+        best_delta[index[better]] = delta[better]
+        return f
 
     def objective(delta, index):
         w = partial_weights(delta, floored[index])
-        R_inv = information_factors(flat_L_inv[index], w).R_inv
-        return squared_norms(R_inv)
+        R_inv = information_factors(flat_L_inv[index], w, failures=failures).R_inv
+        return remember(delta, index, squared_norms(R_inv))
 
     def evaluate(delta, index):
         r = floored[index]
-        _, factors, spread = bound_and_spread(delta, r, flat_L_inv[index])
+        _, factors, spread = bound_and_spread(delta, r, flat_L_inv[index], failures)
         first, second = weight_derivatives(delta, r)
         curvature = trace_curvature(factors)  # Tr(P I_i P I_j P)
         H = 2.0 * first[..., :, None] * first[..., None, :] * curvature
         H = H - (second * spread)[..., None] * np.eye(count)
-        trace = squared_norms(factors.R_inv)
-        return trace, -first * spread, symmetrize(H)
+        trace = remember(delta, index, squared_norms(factors.R_inv))
+        if not partial:
+            return trace, -first * spread, symmetrize(H)
+        singular = ~np.isfinite(trace)
+        g = np.where(singular[:, None], 0.0, -first * spread)
+        H = np.where(singular[:, None, None], np.eye(count), symmetrize(H))
+        return trace, g, H
 
     single = _single_pair_delta(flat_L_inv[0], floored[0], max_iter) if (
-        count == 2 and size == 1) else None
+        count == 2 and size == 1 and not partial) else None
     if single is not None:
         delta, steps = single
-    elif count == 2:
+    elif count == 2 and not partial:
         delta, steps = _pair_newton(evaluate, objective, size, max_iter)
     else:
-        delta, steps, _ = minimize_convex_simplex(
-            evaluate, objective, count, (size,), xtol=tol, max_iter=max_iter, gtol=tol,
-            subset=True,
-        )
+        # (partial estimates: singular faces give inf and NaN factors, rejected by design)
+        with np.errstate(**({"invalid": "ignore", "over": "ignore"} if partial else {})):
+            delta, steps, _ = minimize_convex_simplex(
+                evaluate, objective, count, (size,), xtol=tol, max_iter=max_iter, gtol=tol,
+                subset=True,
+            )
+    if partial:  # a last step onto a singular face: the best finite point evaluated
+        landed = np.isnan(information_factors(flat_L_inv, partial_weights(
+            delta.reshape(size, count), true_rho.reshape(size, count)),
+            failures="nan").R[:, 0, 0])
+        delta = np.where(landed[:, None], best_delta, delta.reshape(size, count))
     delta, steps = delta.reshape(batch + (count,)), steps.reshape(batch)
     _, factors, spread = bound_and_spread(delta, true_rho, L_inv)
     trace = squared_norms(factors.R_inv)
@@ -407,9 +551,10 @@ def newton_delta(L_inv, rho, tol, max_iter):
     if redo.any():
         size = steps.size
         flat = delta.reshape(size, count).copy()
+        start = _released(flat[redo], true_rho.reshape(size, count)[redo])
         more, sweeps, _ = alternating_delta(
             L_inv.reshape((size,) + L_inv.shape[-3:])[redo],
-            true_rho.reshape(size, count)[redo], tol, max_iter, start=flat[redo],
+            true_rho.reshape(size, count)[redo], tol, max_iter, start=start,
         )
         flat[redo] = more
         steps[redo] += sweeps

@@ -21,6 +21,7 @@ from typing import Any, Union
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .._numerics.alignment import PartialEstimates
 from .._numerics.information import (
     checked_cholesky,
     lower_inverse_stack,
@@ -34,6 +35,7 @@ from .._numerics.validation import (
     check_int,
     check_scalar,
     check_weights,
+    restore_style,
 )
 from ..result import FusionResult
 from ._partial_correlation import (
@@ -42,6 +44,8 @@ from ._partial_correlation import (
     effective_rho,
     gains_bound,
     newton_delta,
+    partial_state_fusion,
+    partial_state_roots,
     partial_weights,
     relative_gap,
 )
@@ -81,7 +85,9 @@ def partial_ci(xs: ArrayLike, Ps: ArrayLike, rho: ArrayLike, tol: float = 1e-10,
       (25) from ``delta_i = 1/N``.
 
     ``rho = 0`` gives the naive fusion ``(sum_i P_i^-1)^-1`` and ``rho = 1`` trace-optimal CI
-    (Remark 3).
+    (Remark 3). Through :func:`cifilter.fuse` the rule also takes estimates of parts
+    ``H_i x`` of the state (``H=``): ``P^-1 = sum_i w_i H_i^T P_i^-1 H_i`` with the same
+    ``w_i``, derived in ``docs/methods/partial_state.rst``.
 
     Parameters
     ----------
@@ -129,7 +135,9 @@ def partial_ci(xs: ArrayLike, Ps: ArrayLike, rho: ArrayLike, tol: float = 1e-10,
         ``rho = 1``; ``omega`` is None: the rule's own parameter is ``delta``), ``gains``
         (..., N, n, n) the ``K_i`` (they sum to the identity), and ``info`` with ``delta``
         (..., N), ``gamma`` (...; two estimates only, ``delta_1 = 1/(1+gamma)``), ``rho``
-        (..., N) as used (for two estimates ``sqrt(rho_1 rho_2)`` twice), ``value`` (the
+        (..., N) as used (for two estimates ``sqrt(rho_1 rho_2)`` twice; 0 for a bound at
+        or below ``eps^2 / (4 N^2)``, whose effect on the bound is below rounding, so the
+        answer is exactly that of ``rho_i = 0``), ``value`` (the
         trace of ``P``), ``gap`` (a certified bound on the relative excess of ``Tr(P)`` over
         its minimum, also for a given ``delta``), ``rule`` (``"optimal"``, or ``"fixed"``
         for a given ``delta``), and for the optimal ``delta`` also ``iterations`` and
@@ -156,6 +164,11 @@ def partial_ci(xs: ArrayLike, Ps: ArrayLike, rho: ArrayLike, tol: float = 1e-10,
 
     Notes
     -----
+    A bound ``rho_i <= eps^2 / (4 N^2)`` (about 1e-33) is used as 0: it changes the worst
+    admissible error variance by a factor at most ``1 + eps`` (``docs/methods/pci.rst``,
+    "Bounds below rounding"), and keeping it would leave double precision (optimal
+    ``delta_i ~ sqrt(rho_i)``, slopes ``~ 1/rho_i``).
+
     Each iteration costs one Cholesky factorisation per problem; all problems of a batch
     iterate together and stop individually. Algorithms 1 and 2 are block-coordinate
     descent on ``Tr(sum_i w_i^-1 K_i P_i K_i^T)``, so the trace decreases monotonically.
@@ -207,7 +220,14 @@ def partial_ci(xs: ArrayLike, Ps: ArrayLike, rho: ArrayLike, tol: float = 1e-10,
 
 
 def _partial_ci(est, rho=None, tol=1e-10, max_iter=100, *, solver="newton", delta=None):
-    """The ``"pci"`` rule on validated estimates (the core of :func:`partial_ci`)."""
+    """The ``"pci"`` rule on validated estimates (the core of :func:`partial_ci`).
+
+    Estimates of parts ``H_i x`` of the state (``fuse(..., method="pci", H=...)``, a
+    :class:`~cifilter._numerics.alignment.PartialEstimates`) take the same solvers on the
+    square roots ``G_i`` of ``H_i^T P_i^-1 H_i`` (``docs/methods/partial_state.rst``,
+    eqs. (H10)-(H12)); ``info["gains"]`` then holds the (..., n, m_i) gains and ``gains``
+    is None unless every ``m_i = n``.
+    """
     if rho is None:
         raise ValueError(
             "the 'pci' rule needs a correlation coefficient bound: fuse(..., method='pci', "
@@ -220,11 +240,16 @@ def _partial_ci(est, rho=None, tol=1e-10, max_iter=100, *, solver="newton", delt
         raise ValueError(f"solver must be one of {', '.join(map(repr, _SOLVERS))}, got {solver!r}")
     two = est.count == 2
     used = effective_rho(rho)
-    L_inv = lower_inverse_stack(est.L)
+    partial = isinstance(est, PartialEstimates)
+    if partial:
+        roots = partial_state_roots(est)
+        L_inv = roots.G
+    else:
+        L_inv = lower_inverse_stack(est.L)
     converged = None
     if delta is None:
         if solver == "newton":
-            delta, iterations = newton_delta(L_inv, used, tol, max_iter)
+            delta, iterations = newton_delta(L_inv, used, tol, max_iter, partial=partial)
         else:
             delta, iterations, converged = alternating_delta(L_inv, used, tol, max_iter)
         info = {"rule": "optimal", "iterations": iterations, "solver": solver,
@@ -238,13 +263,19 @@ def _partial_ci(est, rho=None, tol=1e-10, max_iter=100, *, solver="newton", delt
                              f"batch shape {est.batch_shape} of the estimates") from None
         info = {"rule": "fixed"}
     weights = partial_weights(delta, used)
-    fused = weighted_fusion(est.x, est.L, weights, L_inv)
-    x, gains = fused.x, fused.gains
-    # the bound of the returned gains from the inputs themselves (not from L_i L_i^T)
-    P = gains_bound(gains, est.P, weights)
+    if partial:
+        x, P, partial_gains, factors = partial_state_fusion(est, roots, weights)
+        n = est.dim
+        gains = (np.stack(partial_gains, axis=-3)
+                 if all(K.shape[-1] == n for K in partial_gains) else None)
+    else:
+        fused = weighted_fusion(est.x, est.L, weights, L_inv)
+        x, gains, factors = fused.x, fused.gains, fused.factors
+        # the bound of the returned gains from the inputs themselves (not from L_i L_i^T)
+        P = gains_bound(gains, est.P, weights)
     checked_cholesky(P, "the fused covariance")
-    spread = squared_norms(fused.factors.B)
-    trace = squared_norms(fused.factors.R_inv)
+    spread = squared_norms(factors.B)
+    trace = squared_norms(factors.R_inv)
     with np.errstate(over="ignore", invalid="ignore"):  # a fixed delta_i = 0, rho_i ~ 1e-300
         gap = relative_gap(delta, used, trace, spread)
     if info["rule"] == "optimal":
@@ -255,11 +286,13 @@ def _partial_ci(est, rho=None, tol=1e-10, max_iter=100, *, solver="newton", delt
     if two:
         with np.errstate(divide="ignore"):
             info["gamma"] = delta[..., 1] / delta[..., 0]  # delta_1 = 1 / (1 + gamma)
-    x = x[..., None] if est.column else x
+    if partial:
+        info["gains"] = partial_gains
+    x = restore_style(x, est.column)
     return FusionResult(x, P, "pci", None, gains, info, weights)
 
 
-def _truth_rho(joint, count=2):
+def _truth_rho(joint, count=2, sizes=None):
     """The smallest common correlation coefficient bound, eq. (21), of a joint covariance.
 
     Used by simulations (the demo, :mod:`cifilter.network`), where the joint error covariance
@@ -267,23 +300,35 @@ def _truth_rho(joint, count=2):
     eq. (21) with ``rho_i = rho`` reads ``J - (1 - rho) D >= 0``, so the smallest ``rho`` is
     ``1 - lambda_min(L^-1 J L^-T)``. For two estimates this is eq. (8),
     ``sigma_max(X^-1 P_ab Y^-T)`` (the whitened joint has eigenvalues ``1 +- sigma``), which
-    is computed directly.
+    is computed directly. ``sizes`` (the block dimensions m_i, for estimates of parts
+    ``H_i x`` of the state) splits the joint into unequal blocks; without it the blocks are
+    of equal dimension.
     """
     J = as_float_array(joint, "joint")
-    if J.ndim < 2 or J.shape[-1] != J.shape[-2] or J.shape[-1] % count:
+    if sizes is None:
+        if J.ndim < 2 or J.shape[-1] != J.shape[-2] or J.shape[-1] % count:
+            raise ValueError(
+                f"the 'pci' truth hook expects the joint covariance of {count} estimates of "
+                f"equal dimension, (..., {count}n, {count}n), or sizes= (the dimension of "
+                f"each); got shape {J.shape}"
+            )
+        sizes = [J.shape[-1] // count] * count
+    sizes = [int(m) for m in sizes]
+    if (len(sizes) != count or J.ndim < 2 or J.shape[-1] != J.shape[-2]
+            or sum(sizes) != J.shape[-1]):
         raise ValueError(
-            f"the 'pci' truth hook expects the joint covariance of {count} estimates of equal "
-            f"dimension, (..., {count}n, {count}n); got shape {J.shape}"
+            f"the 'pci' truth hook expects the joint covariance of {count} estimates of "
+            f"dimensions {sizes}, ({sum(sizes)}, {sum(sizes)}); got shape {J.shape}"
         )
-    n = J.shape[-1] // count
+    ends = np.cumsum([0] + sizes)
+    parts = [slice(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:])]
     if count == 2:
-        rho = np.asarray(correlation_bound(J[..., :n, :n], J[..., n:, n:], J[..., :n, n:]))
+        a, b = parts
+        rho = np.asarray(correlation_bound(J[..., a, a], J[..., b, b], J[..., a, b]))
     else:
-        blocks = [J[..., i * n:(i + 1) * n, i * n:(i + 1) * n] for i in range(count)]
-        inverse_factors = [lower_inverse_stack(cholesky(block, "joint block")) for block in blocks]
         W = np.zeros_like(J)
-        for i, Li in enumerate(inverse_factors):
-            W[..., i * n:(i + 1) * n, i * n:(i + 1) * n] = Li
+        for part in parts:
+            W[..., part, part] = lower_inverse_stack(cholesky(J[..., part, part], "joint block"))
         whitened = W @ J @ np.swapaxes(W, -1, -2)
         whitened = 0.5 * (whitened + np.swapaxes(whitened, -1, -2))
         rho = 1.0 - np.linalg.eigvalsh(whitened)[..., 0]
@@ -291,8 +336,8 @@ def _truth_rho(joint, count=2):
     return np.clip(rho, 0.0, 1.0)
 
 
-def _pci_truth_options(joint, rng, count=2):
-    return {"rho": _truth_rho(joint, count)[..., None]}
+def _pci_truth_options(joint, rng, count=2, sizes=None):
+    return {"rho": _truth_rho(joint, count, sizes)[..., None]}
 
 
 REGISTRATION: dict[str, Any] = dict(
@@ -304,13 +349,13 @@ REGISTRATION: dict[str, Any] = dict(
     guarantee="bound",
     truth_options=_pci_truth_options,
     weights="w_i = delta_i / (rho_i + (1 - rho_i) delta_i), eq. (24); they do not sum to one",
-    front_door=("residual",),
+    front_door=("H", "residual"),
 )
 """The record of the ``"pci"`` rule (registered by :mod:`cifilter.rules`).
 
-Its ``front_door`` has ``residual=``/``add=`` (the fused mean is an affine combination of
-the means). Not ``H=``: Lemma 7 and Theorem 5 of Wu, Cai & Fu carry over to estimates of
-``H_i x`` (``docs/methods/partial_state.rst``), but the rule's solvers are written for
-full states. Not ``times=``: a correlation coefficient bound ``rho`` of the estimates does
-not survive the process noise a time shift adds to them.
+Its ``front_door`` has ``H=`` (estimates of parts ``H_i x`` of the state: Lemma 7 and
+Theorem 5 of Wu, Cai & Fu carry over with ``sum_i K_i H_i = I``, eqs. (H10)-(H12) of
+``docs/methods/partial_state.rst``) and ``residual=``/``add=`` (the fused mean is an affine
+combination of the means). Not ``times=``: a correlation coefficient bound ``rho`` of the
+estimates does not survive the process noise a time shift adds to them.
 """

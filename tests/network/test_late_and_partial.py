@@ -425,3 +425,35 @@ def test_fusing_partial_tracks_beats_dropping_them_and_stays_conservative():
     assert rows["fuse"]["anees"] < rows["fuse"]["upper"]
     assert rows["fuse"]["rmse"] < rows["drop"]["rmse"]
     assert rows["drop"]["verdict"] != "overconfident"
+
+
+def test_the_pci_truth_hook_splits_the_joint_of_partial_tracks_by_their_sizes():
+    """The 'pci' truth hook's rho for a full and a partial track comes from blocks of the
+    tracks' own sizes (4 and 2), not from equal halves of the joint."""
+    rng = np.random.default_rng(4)
+    A = rng.standard_normal((6, 6))
+    joint = A @ A.T + 6.0 * np.eye(6)
+    record = cifilter.get_method("pci")
+    rho = record.options_given_truth(joint, None, count=2, sizes=[4, 2])["rho"]
+    # eq. (8): the largest singular value of X^-1 P_ab Y^-T with P_a = X X^T, P_b = Y Y^T
+    X, Y = np.linalg.cholesky(joint[:4, :4]), np.linalg.cholesky(joint[4:, 4:])
+    expected = np.linalg.svd(np.linalg.solve(X, np.linalg.solve(Y, joint[:4, 4:].T).T),
+                             compute_uv=False).max()
+    assert np.isclose(np.max(rho), expected, rtol=1e-10)
+    # a hook that uses the joint whole is not given the sizes
+    optimal = cifilter.get_method("optimal").options_given_truth(joint, None, count=2,
+                                                                  sizes=[4, 2])
+    assert optimal["joint"] is joint or np.array_equal(optimal["joint"], joint)
+
+
+@pytest.mark.parametrize("sequential", [False, True])
+def test_pci_fuses_partial_tracks_with_the_rho_of_their_joint(sequential):
+    scenario = ring(4)
+    data = simulate_data(scenario, 4, 12, rng=3)
+    track = run_network(scenario, data, "pci", sequential=sequential, partial_nodes=[1])
+    assert np.all(np.isfinite(track.P))
+    reference = run_network(scenario, data, "ci", sequential=sequential, partial_nodes=[1])
+    # with the true (smallest admissible) rho the bound is at most CI's (rho = 1) bound
+    # for the same inputs at the first fusion of every node
+    first = np.trace(track.P[:, 0], axis1=-2, axis2=-1)
+    assert np.all(first <= np.trace(reference.P[:, 0], axis1=-2, axis2=-1) * (1 + 1e-9))

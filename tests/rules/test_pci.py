@@ -5,7 +5,7 @@ import io
 import mpmath
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.optimize import minimize, minimize_scalar
@@ -13,8 +13,10 @@ from strategies import (
     assert_psd,
     covariance_sets,
     fused_error_covariance,
+    ill_conditioned_sets,
     sets_with_joint,
 )
+from worst_case import assert_bound_holds
 
 from cifilter import (
     KalmanFilter,
@@ -658,3 +660,90 @@ def test_p_is_the_bound_of_the_returned_gains_to_rounding_at_condition_1e12(seed
         difference = np.array([[float(r.P[i, j] - exact[i, j]) for j in range(4)]
                                for i in range(4)])
     assert np.abs(difference).max() <= 4 * 3 * np.finfo(float).eps * np.linalg.norm(r.P, 2)
+
+
+# ------------------------------------------------- bounds below rounding (issue 21, item 3)
+TINY_RHOS = [5e-324, 2.5e-261, 1e-300, 1e-200, 1e-17, 1e-12]
+EPS = np.finfo(float).eps
+
+
+def mixed_scale_set(seed, count=4, n=3):
+    """``count`` covariances with condition numbers to 1e11, each at its own scale in
+    1e-10..1e10 (rotated log-spaced spectra)."""
+    rng = np.random.default_rng(seed)
+    Ps = []
+    for _ in range(count):
+        Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+        P = Q @ np.diag(10.0 ** rng.uniform(-10, 10) * np.logspace(0, rng.uniform(0, 11), n)) @ Q.T
+        Ps.append(0.5 * (P + P.T))
+    return np.stack(Ps)
+
+
+def assert_tiny_rho_result(Ps, rho):
+    """Finite, converged, a bound in the exact worst direction (50 digits, from the inputs)
+    and continuous with rho = 0: for rho at or below eps^2 / (4 N^2) the rho = 0 answer
+    bit for bit, above it a trace between the rho = 0 optimum and Remark 3's
+    ``(1 + (N - 1) rho)`` times it (plus the certified gap and the conditioning contract's
+    rounding)."""
+    count, n = len(Ps), Ps[0].shape[-1]
+    xs = np.arange(count * n, dtype=float).reshape(count, n)
+    r = partial_ci(xs, Ps, rho)
+    zero = partial_ci(xs, Ps, 0.0)
+    assert np.isfinite(r.P).all() and np.isfinite(r.x).all()
+    np.testing.assert_array_equal(r.P, r.P.T)
+    np.linalg.cholesky(r.P)
+    gap = float(r.info["gap"])
+    assert np.isfinite(gap) and bool(r.info["converged"]) and gap <= 1e-10, gap
+    assert_bound_holds(r.P, r.gains, Ps, rho=rho)
+    if rho <= EPS**2 / (4 * count**2):
+        np.testing.assert_array_equal(r.P, zero.P)
+        np.testing.assert_array_equal(r.x, zero.x)
+        np.testing.assert_array_equal(r.gains, zero.gains)
+        np.testing.assert_array_equal(r.info["rho"], 0.0)
+        return
+    # the traces carry the rounding of the inputs' factors: the conditioning contract's
+    # (64 n N + cond) eps (hypothesis: 1.16e-12 against (N - 1) rho = 1e-12 for a P_i of
+    # condition 1e10 whose trace is dominated by one direction)
+    cond = max(np.linalg.cond(P) for P in Ps)
+    rounding = (64 * n * count + cond) * EPS
+    excess = (np.trace(r.P) - np.trace(zero.P)) / np.trace(zero.P)
+    assert -rounding <= excess <= (count - 1) * rho + gap + rounding, excess
+
+
+@pytest.mark.parametrize("rho", TINY_RHOS)
+@pytest.mark.parametrize("seed", [0, 3, 19])
+def test_tiny_and_subnormal_rho_give_a_converged_bound_continuous_with_rho_0(seed, rho):
+    """Issue 21, item 3: rho = 2.5e-261 and 5e-324 (saved hypothesis examples) ended with
+    a non-converged gap of 3.9e244 (inf for 5e-324): the Newton phase (rho floored to 1e-8)
+    set delta_i = 0 for an estimate at a far larger scale, a fixed point of the sweeps of
+    eq. (25), where the slope of Tr P is -Tr(P P_i^-1 P) / rho_i. On these sets every
+    value of TINY_RHOS failed so before."""
+    assert_tiny_rho_result(mixed_scale_set(seed), rho)
+
+
+@settings(max_examples=40)
+@given(st.integers(2, 5).flatmap(lambda count: st.booleans().flatmap(
+    lambda common: ill_conditioned_sets(count, 3, common_scale=common))),
+    st.sampled_from(TINY_RHOS))
+def test_tiny_rho_at_condition_numbers_to_1e12_and_any_scales(Ps, rho):
+    assert_tiny_rho_result(np.stack(Ps), rho)
+
+
+def test_per_estimate_bounds_below_rounding_are_zero():
+    """A bound rho_i <= eps^2 / (4 N^2) changes the worst case by a factor at most
+    1 + eps (docs/methods/pci.rst): it is used as 0, whatever the other bounds."""
+    Ps = mixed_scale_set(9)
+    xs = np.ones((4, 3))
+    tiny = partial_ci(xs, Ps, [5e-324, 0.5, 1e-200, 0.3])
+    exact = partial_ci(xs, Ps, [0.0, 0.5, 0.0, 0.3])
+    assert tiny.info["converged"]
+    np.testing.assert_array_equal(tiny.P, exact.P)
+    np.testing.assert_array_equal(tiny.info["delta"], exact.info["delta"])
+    np.testing.assert_array_equal(tiny.info["rho"], [0.0, 0.5, 0.0, 0.3])
+    # just above the threshold the bound is used as it is
+    above = 2 * EPS**2 / (4 * 4**2)
+    assert partial_ci(xs, Ps, [above, 0.5, 0.0, 0.3]).info["rho"][0] == above
+    # for two estimates the threshold applies to sqrt(rho_1 rho_2)
+    pair = partial_ci(xs[:2], Ps[:2], [1e-300, 0.9])
+    np.testing.assert_array_equal(pair.info["rho"], 0.0)
+    np.testing.assert_array_equal(pair.P, partial_ci(xs[:2], Ps[:2], 0.0).P)
