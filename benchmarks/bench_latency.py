@@ -24,8 +24,9 @@ to time the compiled kernels on the single-call path.
 method="ci")``, ``cifilter.fuse`` on two ``(x, P)`` pairs and filterpy's ``update``) with
 their calls interleaved one by one (``--repeat`` rounds of ``--number`` calls of each), so
 that a disturbance of the shared machine hits each alike, and reports the minimum and the
-median call of each, with the numpy backend and with ``"auto"`` (numba when installed,
-after a warm-up); ``--profile`` adds a cProfile breakdown of ``kf.fuse`` by layer and the
+median call of each, with the numpy backend, with ``"auto"`` (which keeps single calls on
+numpy) and, when numba is installed, with ``"numba"`` (the compiled kernels on the single
+call, after a warm-up); ``--profile`` adds a cProfile breakdown of ``kf.fuse`` by layer and the
 number of Python calls per fuse:
 
     python benchmarks/bench_latency.py --interleaved --profile
@@ -185,11 +186,17 @@ def run(tree=None, number=200, repeat=7, only=None, backend=None):
     return update, rows
 
 
-def interleaved(tree=None, number=200, repeat=9, backends=("numpy", "auto")):
-    """{backend: {label: (min, median)}} of the three single calls, interleaved."""
+def interleaved(tree=None, number=200, repeat=9, backends=None):
+    """{backend: {label: (min, median)}} of the three single calls, interleaved; by default
+    with the backends ``numpy``, ``auto`` and, when numba is installed, ``numba`` (whose
+    kernels run on single calls; compiled, or loaded from numba's cache, in the warm-up)."""
     import time
 
     cifilter, FilterpyKF = _setup(tree)
+    if backends is None:
+        from cifilter.backend import numba_available
+
+        backends = ("numpy", "auto") + (("numba",) if numba_available() else ())
     F, H, Q, R = _model()
     xs, Ps = _estimates()
     both = [(xs[0], Ps[0]), (xs[1], Ps[1])]

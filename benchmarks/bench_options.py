@@ -21,14 +21,22 @@ the plain call. Run it with
 
     python benchmarks/bench_options.py
     python benchmarks/bench_options.py --number 300 --repeat 15
+    python benchmarks/bench_options.py --backend numba   # the compiled kernels, warmed up
+
+``--backend`` selects the backend of the CI family (``cifilter.set_backend``; default
+``auto``, under which single calls stay on numpy; ``numba`` runs the compiled kernels on
+single calls, compiled during the warm-up). A tree other than the installed one is timed
+with ``--tree PATH`` (put first on ``sys.path``), so that an older checkout is measured by
+the same script.
 """
 
 import argparse
+import sys
 import time
 
 import numpy as np
 
-import cifilter
+cifilter = None  # imported by run(), from --tree when given
 
 
 def _model():
@@ -101,9 +109,22 @@ def rows(criterion):
     ]
 
 
-def run(number=200, repeat=9, criteria=("trace", "det")):
+def _import(tree=None):
+    global cifilter
+    if tree:
+        sys.path.insert(0, tree)
+    import cifilter as module
+
+    cifilter = module
+    return module
+
+
+def run(number=200, repeat=9, criteria=("trace", "det"), backend=None, tree=None):
     """Per row: the least disturbed call (the minimum over ``number * repeat`` timed
     calls) and the median call, with the rows' calls interleaved."""
+    cifilter = _import(tree)
+    if backend is not None:
+        cifilter.set_backend(backend)
     F, Q = _model()
     xs, Ps = _estimates()
     x0, P0 = xs[0].reshape(4, 1).copy(), Ps[0].copy()
@@ -135,8 +156,13 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--number", type=int, default=200, help="calls per timing loop")
     parser.add_argument("--repeat", type=int, default=9, help="timing loops (the best counts)")
+    parser.add_argument("--backend", choices=("auto", "numpy", "numba"),
+                        help="backend of the CI family (cifilter.set_backend)")
+    parser.add_argument("--tree", help="import cifilter from this source tree")
     args = parser.parse_args(argv)
-    best, median, solvers = run(args.number, args.repeat)
+    best, median, solvers = run(args.number, args.repeat, backend=args.backend,
+                                tree=args.tree)
+    print(f"cifilter from {cifilter.__file__}, backend {cifilter.get_backend()}")
     print(f"{'criterion':10s} {'call':12s} {'best us':>8s} {'/ plain':>8s} {'median us':>10s} "
           f"{'/ plain':>8s}  solver")
     for (criterion, label), seconds in best.items():

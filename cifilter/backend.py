@@ -45,7 +45,7 @@ class CompileNotice(UserWarning):
     """Emitted once per process when ``"auto"`` first finds the kernels not compiled.
 
     The call that emits it, and the next ones, use numpy while the kernels compile in a
-    background thread (about 10-40 s on two cores); then the kernels take over.
+    background thread (a minute or two on two cores); then the kernels take over.
     ``python -m cifilter compile`` (:func:`compile_kernels`) compiles and caches them ahead
     of time, after which a new process loads them from the cache without a notice.
 

@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike
 from ._numerics.alignment import (
     PartialEstimates,
     added_to_reference,
+    align_estimates,
     align_in_time,
     as_partial_estimates,
     check_observation_matrices,
@@ -144,6 +145,7 @@ class FusionMethod:
     signature: Optional[tuple[tuple[str, ...], tuple[str, ...], bool]] = field(
         default=None, repr=False, compare=False)
     truth_takes_count: bool = field(default=False, init=False, repr=False, compare=False)
+    truth_takes_sizes: bool = field(default=False, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         # computed once: inspect.signature is slow per call (the network simulation asks
@@ -152,12 +154,14 @@ class FusionMethod:
             signature = (_option_signature(self.core, 1) if self.core is not None
                          else _option_signature(self.function, 2))
             object.__setattr__(self, "signature", signature)
-        takes_count = (self.truth_options is not None
-                       and "count" in inspect.signature(self.truth_options).parameters)
-        object.__setattr__(self, "truth_takes_count", takes_count)
+        parameters = (inspect.signature(self.truth_options).parameters
+                      if self.truth_options is not None else {})
+        object.__setattr__(self, "truth_takes_count", "count" in parameters)
+        object.__setattr__(self, "truth_takes_sizes", "sizes" in parameters)
 
     def options_given_truth(self, joint: ArrayLike, rng: Optional[np.random.Generator],
-                            count: int = 2) -> dict[str, Any]:
+                            count: int = 2,
+                            sizes: Optional[Sequence[int]] = None) -> dict[str, Any]:
         """Options for this rule in a simulation where the joint covariance is known.
 
         Parameters
@@ -169,6 +173,11 @@ class FusionMethod:
         count : int, optional
             The number N of estimates in ``joint`` (default 2); given to the hook when it
             takes a ``count`` argument (hooks written for two estimates need not).
+        sizes : sequence of int, optional
+            The dimension of each estimate's block of ``joint`` (estimates of parts
+            ``H_i x`` of the state have blocks of unequal size); given to the hook when it
+            takes a ``sizes`` argument (a hook that uses the joint whole, such as the
+            optimal fusion's, need not).
 
         Returns
         -------
@@ -183,9 +192,14 @@ class FusionMethod:
         """
         if self.truth_options is None:
             return {}
+        if not self.truth_takes_sizes:  # a hook that uses the joint whole
+            sizes = None
+        extra: dict[str, Any] = {}
         if self.truth_takes_count:
-            return dict(self.truth_options(joint, rng, count=count))
-        return dict(self.truth_options(joint, rng))
+            extra["count"] = count
+        if sizes is not None:
+            extra["sizes"] = sizes
+        return dict(self.truth_options(joint, rng, **extra))
 
 
 GUARANTEES = ("bound", "exact", "none")
@@ -631,7 +645,27 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
                                names=_NAMES if labels is None else _LABELLED_NAMES,
                                labels=labels)
         return _call_rule(record, stacked, options)
+    if (times is not None and H is None and residual is None and add is None
+            and horizon is None and model is None):
+        # times= alone (kf.fuse(lag=)): the checks and steps below, for this case only
+        if "times" not in record.front_door:
+            raise _front_door_refusal(record, "times")
+        _check_options(record, options)
+        stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs],
+                               names=_NAMES if labels is None else _LABELLED_NAMES,
+                               labels=labels)
+        times, at = check_times(times, len(pairs), at)
+        alpha = align_estimates(stacked, times, at, motion, labels)
+        result = _call_rule(record, stacked, options)
+        return result.replace(info={**result.info, "at": at, "retrodiction_alpha": alpha})
     Hs = check_observation_matrices(H, len(pairs))
+    if (Hs is not None and residual is None and add is None and times is None and at is None
+            and motion is None and horizon is None and model is None):
+        # H= alone (kf.fuse(H=)): the checks and steps below, for this case only
+        if "H" not in record.front_door:
+            raise _front_door_refusal(record, "H")
+        _check_options(record, options)
+        return _call_rule(record, as_partial_estimates(pairs, Hs, labels), options)
     requested = [option for option, given in (("H", Hs is not None),
                                               ("residual", residual is not None
                                                or add is not None),
@@ -690,13 +724,10 @@ def _fuse_through_front_door(record, pairs, options, horizon, model, labels, nam
     """Validate once, bring the estimates to one time and to residuals, run the rule and
     add the fused residual back (``docs/methods/partial_state.rst``, ``time.rst``)."""
     count = len(pairs)
-    where = [f"estimates[{i}]" if labels is None else labels[i] for i in range(count)]
     if Hs is None:
         # (validated copies: the aligned estimates are written into them)
         stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs], names=names,
                                labels=labels)
-        x = [stacked.x[..., i, :] for i in range(count)]
-        L = [stacked.L[..., i, :, :] for i in range(count)]
         n, column, H = stacked.dim, stacked.column, (None,) * count
     else:
         partial = as_partial_estimates(pairs, Hs, labels)
@@ -705,15 +736,15 @@ def _fuse_through_front_door(record, pairs, options, horizon, model, labels, nam
     extra: dict[str, Any] = {}
     if times is not None:
         times, at = check_times(times, count, at)
-        x, P_new, alpha, changed = align_in_time(x, L, [h is None for h in H], times, at,
-                                                 motion, n, where)
-        for i in changed:
-            L_new = cholesky(P_new[i], f"{where[i]}'s P brought to at={at:g}")
-            if Hs is None:
-                stacked.x[..., i, :], stacked.P[..., i, :, :] = x[i], P_new[i]
-                stacked.L[..., i, :, :] = L_new
-            else:
-                P[i], L[i] = P_new[i], L_new
+        if Hs is None:  # in place, with the new factors
+            alpha = align_estimates(stacked, times, at, motion, labels)
+        else:
+            where = [f"estimates[{i}]" if labels is None else labels[i] for i in range(count)]
+            x, P_new, alpha, changed = align_in_time(x, L, [h is None for h in H], times, at,
+                                                     motion, n, where)
+            for i in changed:
+                P[i] = P_new[i]
+                L[i] = cholesky(P_new[i], f"{where[i]}'s P brought to at={at:g}")
         extra.update(at=at, retrodiction_alpha=tuple(alpha))
     reference = None
     if residual is not None or add is not None:
@@ -725,6 +756,8 @@ def _fuse_through_front_door(record, pairs, options, horizon, model, labels, nam
         if H[0] is not None:
             raise ValueError("residual= and add= fuse residuals relative to the first "
                              "estimate, which must estimate the full state (H[0] None)")
+        if Hs is None:
+            x = [stacked.x[..., i, :] for i in range(count)]
         batch = np.broadcast_shapes(*(xi.shape[:-1] for xi in x))
         x = [np.broadcast_to(xi, batch + xi.shape[-1:]) for xi in x]
         reference = np.array(x[0])

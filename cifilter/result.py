@@ -15,10 +15,10 @@ def _frozen(value):
     """A read-only array (a view when ``value`` already is an array)."""
     if value is None:
         return None
-    array = np.asarray(value)
+    array = value if type(value) is np.ndarray else np.asarray(value)
     if array.flags.writeable:
         array = array.view()
-        array.flags.writeable = False
+        array.setflags(write=False)  # (faster than flags.writeable = False)
     return array
 
 
@@ -36,6 +36,9 @@ class _FrozenList(list):
 
 
 _IMMUTABLE = (str, bytes, int, float, bool, type(None), np.generic)
+# the exact types of _IMMUTABLE's usual members (a set look-up, before the isinstance test)
+_PLAIN = frozenset((str, bytes, int, float, bool, type(None), np.float64, np.int64,
+                    np.bool_))
 
 
 def _frozen_info(value):
@@ -44,13 +47,18 @@ def _frozen_info(value):
     Mappings become read-only mappings, lists read-only lists and tuples tuples of frozen
     items, recursively; other values (numbers, strings, numpy scalars) are kept.
     """
-    if isinstance(value, _IMMUTABLE):  # the common case first: info is on every result
-        return value
-    if type(value) is np.ndarray:
+    kind = type(value)
+    if kind is np.ndarray:  # the common cases first: info is on every result
         if value.flags.writeable:
             value = value.view()
-            value.flags.writeable = False
+            value.setflags(write=False)  # (faster than flags.writeable = False)
         return value
+    if kind in _PLAIN or isinstance(value, _IMMUTABLE):
+        return value
+    if kind is dict:  # (exactly a dict or a tuple: what the tests below do, sooner)
+        return MappingProxyType({key: _frozen_info(item) for key, item in value.items()})
+    if kind is tuple:
+        return tuple([_frozen_info(item) for item in value])
     if isinstance(value, np.ndarray):
         return _frozen(value)
     if isinstance(value, (dict, MappingProxyType)) or isinstance(value, Mapping):
@@ -153,17 +161,7 @@ class FusionResult:
     weights: Optional[NDArray[np.float64]] = None
 
     def __post_init__(self):
-        set_field = object.__setattr__
-        set_field(self, "x", _frozen(self.x))
-        set_field(self, "P", _frozen(self.P))
-        set_field(self, "omega", _frozen(self.omega))
-        set_field(self, "gains", _frozen(self.gains))
-        info = self.info
-        if not isinstance(info, Mapping):  # (pairs, say) a mapping first
-            info = dict(info)
-        # a mapping is copied by _frozen_info itself (into a fresh read-only mapping)
-        set_field(self, "info", _frozen_info(info))
-        set_field(self, "weights", self.omega if self.weights is None else _frozen(self.weights))
+        _set_fields(self, self.x, self.P, self.omega, self.gains, self.info, self.weights)
 
     def __repr__(self):
         weights = None if self.weights is None else np.array2string(self.weights, precision=4)
@@ -199,9 +197,57 @@ class FusionResult:
         >>> r.replace(method="renamed").method
         'renamed'
         """
-        fields: dict[str, Any] = dict(
-            x=self.x, P=self.P, method=self.method, omega=self.omega, gains=self.gains,
-            info=self.info, weights=self.weights,
-        )
-        fields.update(changes)
-        return FusionResult(**fields)
+        if not changes.keys() <= _FIELD_NAMES:  # the constructor's TypeError names them
+            fields: dict[str, Any] = dict(
+                x=self.x, P=self.P, method=self.method, omega=self.omega, gains=self.gains,
+                info=self.info, weights=self.weights,
+            )
+            fields.update(changes)
+            return FusionResult(**fields)
+        # The fields of self are frozen already: only the changed ones are frozen again, and
+        # of a changed info only the entries that are not self.info's own (the same
+        # objects), which the front door's additions (a key or two) make the usual case.
+        # The same result as FusionResult(**fields), without re-freezing the rest.
+        result = object.__new__(FusionResult)
+        get = changes.get
+        info = get("info", self.info)
+        frozen = info is self.info
+        if not frozen and isinstance(info, Mapping):
+            known = dict(self.info).get  # (a dict's look-ups: faster than the proxy's)
+            info = MappingProxyType({
+                key: (item if known(key, _MISSING) is item else _frozen_info(item))
+                for key, item in info.items()})
+            frozen = True
+            if len(changes) == 1:  # info alone (the front door's additions): the other
+                # fields are self's, frozen already
+                fields = result.__dict__
+                fields.update(self.__dict__)
+                fields["info"] = info
+                return result
+        object.__setattr__(result, "method", get("method", self.method))
+        _set_fields(result, get("x", self.x), get("P", self.P), get("omega", self.omega),
+                    get("gains", self.gains), info, get("weights", self.weights), frozen)
+        return result
+
+
+_FIELD_NAMES = frozenset(("x", "P", "method", "omega", "gains", "info", "weights"))
+_MISSING = object()
+
+
+def _set_fields(result, x, P, omega, gains, info, weights, info_frozen=False):
+    """Set the fields of ``result`` frozen: arrays read-only (views), ``info`` a read-only
+    mapping of frozen values (kept as it is with ``info_frozen``), ``weights`` ``omega``
+    unless given."""
+    set_field = object.__setattr__
+    set_field(result, "x", _frozen(x))
+    set_field(result, "P", _frozen(P))
+    omega = _frozen(omega)
+    set_field(result, "omega", omega)
+    set_field(result, "gains", _frozen(gains))
+    if not info_frozen:
+        if not isinstance(info, Mapping):  # (pairs, say) a mapping first
+            info = dict(info)
+        # a mapping is copied by _frozen_info itself (into a fresh read-only mapping)
+        info = _frozen_info(info)
+    set_field(result, "info", info)
+    set_field(result, "weights", omega if weights is None else _frozen(weights))

@@ -22,6 +22,7 @@ from strategies import ill_conditioned_spd
 
 from cifilter import IllConditionedError, fuse, get_method
 from cifilter._numerics.alignment import (
+    StepMotion,
     added_to_reference,
     check_times,
     motion_matrices,
@@ -155,6 +156,40 @@ def test_retrodiction_bound_holds_in_the_exact_worst_case(problem):
             C = worst_joint_covariance(F, P, Q, u)
             difference = mp(P_new) - C
         assert min_eigenvalue(difference) >= -tol * np.linalg.norm(P_new, 2)
+
+
+@settings(max_examples=40)
+@given(retrodiction_problems(), st.integers(1, 3))
+def test_retrodicted_bound_is_exactly_symmetric_and_the_cached_path_agrees(problem, k):
+    """The single-estimate retrodiction forms P without a final symmetrisation: A A^T
+    (numpy's syrk) and back_noise's symmetrised F^-1 Q F^-T are exactly symmetric, so P is;
+    through lag='s cache (StepMotion.back) it is the same P bit for bit, and it is the
+    formula (T5)-(T6) evaluated in 50 digits from the inputs, to rounding."""
+    F, P, Q = problem
+    n = F.shape[0]
+    if np.linalg.cond(F) > 1e3:
+        return
+    Q = 0.5 * (Q + Q.T)  # (exactly symmetric: the cache's checked copy is the same Q)
+    steps = StepMotion(F, Q)
+    F_k, Q_k = steps(k)
+    L = np.linalg.cholesky(P)
+    x = np.arange(1.0, n + 1)
+    x_new, P_new, alpha = retrodicted(x, L, F_k, Q_k)
+    np.testing.assert_array_equal(P_new, P_new.T)
+    F_inv, Q_back = steps.back(k, n, "F")
+    np.testing.assert_array_equal(Q_back, Q_back.T)
+    cached = retrodicted(x, L, F_k, Q_k, F_inv=F_inv, Q_back=Q_back)
+    np.testing.assert_array_equal(cached[0], x_new)
+    np.testing.assert_array_equal(cached[1], P_new)
+    assert cached[2] == alpha
+    with mpmath.workdps(DIGITS):
+        Fi = mp(F_k) ** -1
+        exact = Fi * (mp(P) / alpha + mp(Q_k) / (1 - alpha)) * Fi.T if alpha < 1 else (
+            Fi * mp(P) * Fi.T)
+        error = max(abs(float(exact[i, j]) - P_new[i, j]) for i in range(n)
+                    for j in range(n))
+    bound = 64.0 * n * np.finfo(float).eps * np.linalg.cond(F_k) ** 2
+    assert error <= bound * max(np.abs(P_new).max(), 1e-300)
 
 
 def test_retrodiction_bound_is_tight_in_some_direction():
@@ -464,5 +499,34 @@ def test_residual_is_passed_copies_and_inputs_are_unchanged():
 def test_the_front_door_options_are_declared_by_the_records():
     assert get_method("ci").front_door == ("H", "residual", "times")
     assert get_method("naive").front_door == ("H", "residual")
-    assert get_method("pci").front_door == ("residual",)
+    assert get_method("pci").front_door == ("H", "residual")  # (H=: partial CI of parts)
     assert get_method("ei").front_door == ()
+
+
+@pytest.mark.parametrize("times, at", [([0.0, 2.0, 1.0], 2.0), ([0.0, 2.0, 1.0], 0.0),
+                                       ([1.0, 1.0, 3.0], 1.0)])
+def test_times_on_a_batch_equal_the_items_fused_one_by_one(times, at):
+    """The batched path of the time alignment (each moved estimate's mean, covariance and
+    factor written into the validated stack) gives each item's single fusion."""
+    rng = np.random.default_rng(11)
+
+    def motion(dt):
+        return np.array([[1.0, dt], [0.0, 1.0]]), 0.1 * dt * np.array([[1.0, 0.3], [0.3, 1.0]])
+
+    xs = rng.standard_normal((3, 4, 2))  # 3 estimates, a batch of 4
+    Ps = []
+    for _ in range(3):
+        A = rng.standard_normal((4, 2, 2))
+        Ps.append(A @ A.swapaxes(-1, -2) + 0.3 * np.eye(2))
+    batched = fuse([(xs[i], Ps[i]) for i in range(3)], times=times, at=at, motion=motion)
+    for b in range(4):
+        single = fuse([(xs[i][b], Ps[i][b]) for i in range(3)], times=times, at=at,
+                      motion=motion)
+        np.testing.assert_allclose(batched.x[b], single.x, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(batched.P[b], single.P, rtol=1e-12)
+        for i, alpha in enumerate(single.info["retrodiction_alpha"]):
+            if alpha is None:
+                assert batched.info["retrodiction_alpha"][i] is None
+            else:
+                assert batched.info["retrodiction_alpha"][i][b] == pytest.approx(alpha,
+                                                                                rel=1e-12)

@@ -443,3 +443,174 @@ def test_estimates_of_very_different_scales_agree_to_the_documented_bound():
     for weights, call in calls:
         a, b = _run("numba", call), _run("numpy", call)
         _assert_within_the_agreement_bound(a, b, xs, Ps, weights)
+
+
+# ----------------------------------------------------------------- N >= 3 compiled
+@needs_numba
+@settings(max_examples=25)
+@given(st.integers(3, 5).flatmap(lambda count: st.integers(1, 4).flatmap(
+    lambda n: st.booleans().flatmap(lambda common: st.tuples(
+        batches(count, n, 6), st.just(common))))), criteria)
+def test_many_estimate_optimal_ci_agrees_with_numpy(drawn, criterion):
+    """N = 3 to 5 at condition numbers up to 1e12 (and well-conditioned sets, which the
+    kernel solves itself): the compiled solver and the numpy path give the same weights to
+    1e-9 and P to 1e-9 relative, the same flags; every compiled result dominates the error
+    covariance of its gains in the exact worst direction (50 digits)."""
+    (xs, Ps), _ = drawn
+    criterion = _criterion(criterion, xs.shape[-1])
+    try:
+        b = _run("numpy", lambda: covariance_intersection(xs, Ps, criterion))
+    except IllConditionedError as error:  # beyond the contract: both raise alike
+        with pytest.raises(IllConditionedError) as raised:
+            _run("numba", lambda: covariance_intersection(xs, Ps, criterion))
+        assert str(raised.value) == str(error)
+        return
+    a = _run("numba", lambda: covariance_intersection(xs, Ps, criterion))
+    _assert_same(a, b)
+    assert a.info["solver"] == "simplex"
+    for i in range(Ps.shape[0]):
+        assert_bound_holds(a.P[i], a.gains[i], list(Ps[i]), tol=fused_bound_tolerance(Ps[i]))
+
+
+def _well_conditioned(size, count, n, seed):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((size, count, n, n))
+    Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(n)
+    return rng.standard_normal((size, count, n)), Ps
+
+
+def _refuse(sub, sub_W):
+    raise AssertionError(f"{sub.x.shape[0]} items handed back to numpy")
+
+
+@needs_numba
+@pytest.mark.parametrize("count", [3, 4, 7, 11])
+@pytest.mark.parametrize("criterion", ["trace", "det", "weighted"])
+def test_the_kernel_solves_well_conditioned_sets_of_three_and_more(count, criterion):
+    """Ordinary sets of 3 to 11 estimates are solved and certified by the compiled solver
+    itself (nothing is handed back to numpy), with the numpy path's certificate semantics:
+    every item converged, the same weights, P, gap flags and a gap within the tolerance."""
+    from cifilter._kernels import dispatch
+    from cifilter._numerics.criteria import GAP_TOL, parse_criterion
+    from cifilter._numerics.validation import as_estimates
+
+    xs, Ps = _well_conditioned(40, count, 3, count)
+    kind, W = parse_criterion(_criterion(criterion, 3), 3)
+    est = as_estimates(xs, Ps)
+    with cifilter.use_backend("numba"):
+        weights, info, (x, P, gains), report = dispatch.optimal_many(est, kind, W, _refuse)
+    b = _run("numpy", lambda: covariance_intersection(xs, Ps, _criterion(criterion, 3)))
+    np.testing.assert_allclose(weights, b.omega, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(P, b.P, rtol=1e-10, atol=0)
+    np.testing.assert_allclose(x, b.x, rtol=0, atol=1e-9 * np.abs(b.x).max())
+    np.testing.assert_allclose(gains.sum(axis=-3), np.broadcast_to(np.eye(3), P.shape),
+                               atol=1e-12)
+    assert info["converged"].all() and (info["gap"] <= GAP_TOL).all()
+    assert (weights >= 0).all() and np.allclose(weights.sum(axis=-1), 1.0, rtol=0, atol=1e-15)
+    assert (weights == 0.0).any()  # optima on faces are exact zeros, as numpy's
+    np.testing.assert_allclose(report["value"], b.info["value"], rtol=1e-10)
+
+
+@needs_numba
+def test_many_estimates_beyond_the_active_set_range_stay_on_numpy():
+    """12 estimates and more: numpy's interior-point phase leads, the kernel is not used."""
+    from cifilter._kernels import dispatch
+    from cifilter._numerics.validation import as_estimates
+
+    xs, Ps = _well_conditioned(10, 12, 2, 0)
+    with cifilter.use_backend("numba"):
+        assert dispatch.optimal_many(as_estimates(xs, Ps), "trace", None, _refuse) is None
+
+
+@needs_numba
+def test_sets_the_kernel_cannot_certify_are_solved_by_numpy():
+    """Tied estimates (P_1 = P_2: the reduced Hessian is singular, the weights are not
+    determined by the gradients) and a set at condition 1e10 amid ordinary sets: the tie
+    is handed back under both criteria, the ill-conditioned set under trace (its
+    certificate's rounding term, 7e-5, is far above the tolerance; under det its optimum is
+    the vertex of the precise estimate, certified by the kernel as by numpy), and the whole
+    batch equals the numpy path."""
+    xs, Ps = _well_conditioned(10, 3, 3, 21)
+    Ps[2, 1] = Ps[2, 0]
+    rng = np.random.default_rng(4)
+    Q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    Ps[6, 2] = Q @ np.diag([1.0, 1e-5, 1e-10]) @ Q.T
+    Ps[6, 2] = 0.5 * (Ps[6, 2] + Ps[6, 2].T)
+    from cifilter._kernels import dispatch
+
+    for criterion, handed_back in (("trace", 2), ("det", 1)):
+        before = dispatch.report()["handed_back"]
+        a = _run("numba", lambda criterion=criterion: covariance_intersection(xs, Ps, criterion))
+        assert dispatch.report()["handed_back"] - before == handed_back
+        b = _run("numpy", lambda criterion=criterion: covariance_intersection(xs, Ps, criterion))
+        _assert_same(a, b)
+        for k in (2, 6):
+            assert_bound_holds(a.P[k], a.gains[k], list(Ps[k]))
+
+
+# ----------------------------------------------------------------- threads and dimensions
+def _pairs(size, n, seed=0):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((size, 2, n, n))
+    return rng.standard_normal((size, 2, n)), A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(n)
+
+
+@needs_numba
+def test_auto_sends_problems_above_the_crossover_dimension_to_numpy():
+    """Under auto, batches of n <= AUTO_MAX_DIM run on the kernels, larger n on numpy
+    (LAPACK wins there, benchmarks/bench_many.py --dims); "numba" still forces the kernels."""
+    from cifilter._kernels import dispatch
+
+    def kernel_calls(n, backend):
+        xs, Ps = _pairs(AUTO_MIN_BATCH + 1, n)
+        before = dispatch.report()["kernels"]
+        _run(backend, lambda: covariance_intersection(xs, Ps))
+        _run(backend, lambda: covariance_intersection(xs, Ps, omega="fast"))
+        return dispatch.report()["kernels"] - before
+
+    assert kernel_calls(dispatch.AUTO_MAX_DIM, "auto") == 2
+    assert kernel_calls(dispatch.AUTO_MAX_DIM + 1, "auto") == 0
+    assert kernel_calls(dispatch.AUTO_MAX_DIM + 1, "numba") == 2
+
+
+@needs_numba
+@pytest.mark.parametrize("size", [THREADED_MIN + 3, AUTO_MIN_BATCH])
+def test_blas_is_pinned_to_one_thread_around_the_threaded_kernels(monkeypatch, size):
+    """While a threaded kernel runs (numba with more than one thread), BLAS runs one
+    thread, and has its previous count again afterwards; around the serial kernels (small
+    batches) BLAS is left alone."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    import numba
+
+    from cifilter._kernels import dispatch
+
+    def blas_threads():
+        return [pool["num_threads"] for pool in threadpoolctl.threadpool_info()
+                if pool["user_api"] == "blas"]
+
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        outside = blas_threads()
+        if numba.get_num_threads() < 2 or not outside or max(outside) < 2:
+            pytest.skip("needs two numba and two BLAS threads")
+        seen = []
+        kernel = dispatch._kernel
+
+        def recording(name, n):
+            real = kernel(name, n)
+
+            def run(*args):
+                seen.append(blas_threads())
+                return real(*args)
+            return run
+
+        monkeypatch.setattr(dispatch, "_kernel", recording)
+        xs, Ps = _pairs(size, 3)
+        with cifilter.use_backend("numba"):
+            covariance_intersection(xs, Ps)
+            covariance_intersection(np.concatenate([xs, xs[:, :1]], axis=1),
+                                    np.concatenate([Ps, Ps[:, :1] * 2.0], axis=1))
+            naive_fusion(xs, Ps)
+        assert len(seen) == 3
+        expected = [1] * len(outside) if size >= THREADED_MIN else outside
+        assert all(threads == expected for threads in seen), seen
+        assert blas_threads() == outside

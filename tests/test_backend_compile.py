@@ -79,9 +79,9 @@ def test_first_auto_call_uses_numpy_and_after_compile_a_new_process_uses_the_ker
     done = _run(["-m", "cifilter", "compile"], cache)
     assert done.returncode == 0, done.stderr
     for name in ("ci_pair_optimal", "ci_pair_optimal_serial", "weighted_fusion",
-                 "weighted_fusion_serial"):
+                 "weighted_fusion_serial", "ci_many_optimal", "ci_many_optimal_serial"):
         assert name in done.stdout
-    assert "4 kernels ready in" in done.stdout
+    assert "6 kernels ready in" in done.stdout
 
     # 3. a new process: its first call runs on the kernels (loaded from the cache), silently
     after = _first_calls(cache, tmp_path / "after.npz")

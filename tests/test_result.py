@@ -94,3 +94,78 @@ def test_rule_results_have_read_only_info_arrays():
     s = fuse([(np.zeros(2), np.eye(2)), (np.ones(2), np.eye(2))]).replace(method="renamed")
     for array in arrays_in(s.info):
         assert not array.flags.writeable
+
+
+def _plain(value):
+    """Plain, comparable structure: mapping and list types, and arrays as their bytes."""
+    if isinstance(value, np.ndarray):
+        return ("array", value.shape, value.tobytes())
+    if hasattr(value, "items"):
+        return (type(value).__name__, [(key, _plain(item)) for key, item in value.items()])
+    if isinstance(value, (list, tuple)):
+        return (type(value).__name__, [_plain(item) for item in value])
+    return value
+
+
+def _fields(r):
+    return dict(x=r.x, P=r.P, method=r.method, omega=r.omega, gains=r.gains, info=r.info,
+                weights=r.weights)
+
+
+@pytest.mark.parametrize("changes", [
+    {},
+    {"method": "renamed"},
+    {"x": np.array([5.0, 6.0])},
+    {"omega": np.array([0.2, 0.8])},  # the weights stay those of the result, as given
+    {"weights": None},  # the weights become omega
+    {"info": "added"},
+    {"info": "dropped"},
+    {"info": "changed"},
+    {"info": [("pairs", 1)]},
+])
+def test_replace_is_the_constructor_on_the_merged_fields(changes):
+    """``replace`` reuses what it can of the frozen result, with the constructor's
+    meaning: an info entry given is the new one (frozen), one left out is gone, the rest
+    (the same objects) stay frozen; the caller's containers are neither frozen nor
+    shared."""
+    r = FusionResult(np.zeros(2), np.eye(2), "mine", omega=np.array([0.5, 0.5]),
+                     weights=np.array([1.0, 3.0]), info=nested_info())
+    history = [np.ones(2), {"step": np.arange(2.0)}]
+    if changes.get("info") == "added":
+        changes = {"info": dict(r.info, added=history, at=0.0)}
+    elif changes.get("info") == "dropped":
+        changes = {"info": {key: item for key, item in r.info.items() if key != "trace"}}
+    elif changes.get("info") == "changed":
+        changes = {"info": dict(r.info, history=history, value=np.array([7.0]))}
+    expected = FusionResult(**dict(_fields(r), **changes))
+    new = r.replace(**changes)
+    assert isinstance(new, FusionResult) and new.method == expected.method
+    for name in ("x", "P", "omega", "gains", "weights"):
+        a, b = getattr(new, name), getattr(expected, name)
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert a.tobytes() == b.tobytes() and a.shape == b.shape
+            assert not a.flags.writeable
+    assert list(new.info) == list(expected.info)
+    assert _plain(new.info) == _plain(expected.info)
+    for array in arrays_in(new.info):
+        assert not array.flags.writeable
+    if "history" in new.info:
+        with pytest.raises(TypeError):
+            new.info["history"].append(1)
+    with pytest.raises(TypeError):
+        new.info["x"] = 1
+    assert history[1].keys() == {"step"} and isinstance(history, list)
+    history.append(3)  # the caller's list stays the caller's
+    if "history" in changes.get("info", {}):
+        assert len(new.info["history"]) == 2
+    assert history[0].flags.writeable  # and its arrays writable
+    if "info" in changes and "trace" not in changes["info"]:
+        assert "trace" not in new.info
+    assert r.info.keys() == nested_info().keys()  # r itself unchanged
+
+
+def test_replace_with_an_unknown_field_is_the_constructors_error():
+    r = FusionResult(np.zeros(1), np.eye(1), "mine")
+    with pytest.raises(TypeError, match="unexpected keyword argument 'omgea'"):
+        r.replace(omgea=np.ones(2))

@@ -28,7 +28,7 @@ from ..backend import CompileNotice, register_compiler
 __all__ = ["KERNELS", "compile_all", "ready", "status"]
 
 KERNELS = ("ci_pair_optimal", "ci_pair_optimal_serial", "weighted_fusion",
-           "weighted_fusion_serial")
+           "weighted_fusion_serial", "ci_many_optimal", "ci_many_optimal_serial")
 """The kernels the dispatch calls (each compiled for one signature)."""
 
 _lock = threading.Lock()
@@ -50,6 +50,14 @@ def _arguments(name: str) -> tuple:
         iterations = np.zeros(size, dtype=int)
         return (x2, P2, L2, W, 0, omega, iterations, gap, floor, computed, np.empty((size, n)),
                 np.empty((size, n, n)), np.empty((size, 2, n, n)), value, log_value, status)
+    if name.startswith("ci_many_optimal"):
+        count = 3
+        x3, L3 = np.zeros((size, count, n)), np.stack([L, L, L], axis=1)
+        gap, floor, computed = (np.empty(size) for _ in range(3))
+        return (x3, L3, W, 0, np.zeros((size, count)), np.zeros(size, dtype=int), gap, floor,
+                computed, np.empty((size, n)), np.empty((size, n, n)),
+                np.empty((size, count, n, n)), value, log_value, status,
+                np.zeros(size, dtype=np.int64))
     x2, L2 = np.zeros((size, 2, n)), np.stack([L, L], axis=1)
     weights = np.full((size, 2), 0.5)
     references = np.zeros(size, dtype=np.int64)
@@ -143,7 +151,7 @@ def ready() -> bool:
         thread.start()
     warnings.warn("cifilter: the compiled (numba) kernels are not compiled yet; this call and "
                   "the next ones use numpy while they compile in a background thread (about "
-                  "10-40 s), then the kernels take over. 'python -m cifilter compile' "
+                  "a minute or two), then the kernels take over. 'python -m cifilter compile' "
                   "compiles and caches them ahead of time.", CompileNotice,
                   stacklevel=_caller_level())
     return False

@@ -640,3 +640,551 @@ def weighted_fusion_serial(x, L, weights, references, W, kind, out_x, out_P, out
     for b in range(x.shape[0]):
         _weighted_item(b, x, L, weights, references, W, kind, out_x, out_P, out_K,
                        out_value, out_log, out_status, work2, work1, work3)
+
+
+# --------------------------------------------------------------------------- N >= 3
+# The active-set Newton method of ``_optimize.minimize_convex_simplex`` (its phase 2, which
+# runs alone below ``INTERIOR_MIN_COUNT`` estimates) for one problem, on the factors of
+# ``_information.information_factors``, stopped at the same certified gap
+# (``gtol = GAP_TOL / 4`` relative to ``|f|``, absolute for det), and certified at the end
+# with the numpy path's certificate (``_criteria.gradient_rounding``,
+# ``_criteria.gap_certificate``). Where that certificate does not reach ``GAP_TOL``, where
+# the weights are not determined to ``_WEIGHT_AGREEMENT`` by the rounding of the gradients
+# (a nearly singular reduced Hessian: ties, nearly flat criteria), or where a step or a
+# factorisation fails, the item is handed back to the numpy path, which decides as always.
+_MANY_MAX_ITER = 200
+_MANY_GTOL = 0.25 * GAP_TOL
+# An item is kept only where ||H_r^-1||_F r <= this: r the bound of the gradients'
+# rounding, H_r the Hessian reduced to the face of the positive weights, so the weights
+# move by at most about this under that rounding (on either backend): both agree to it.
+_WEIGHT_AGREEMENT = 1e-10
+_RCOND = 1e-13  # ``_optimize._RCOND``
+
+
+@_jit
+def _many_information(Li, w, count, n, J, R, Ri):
+    """J = sum_k w_k L_k^-T L_k^-1 (lower triangle), its Cholesky factor R and R^-1;
+    False where J is not numerically positive definite."""
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(count):
+                if w[k] == 0.0:
+                    continue
+                t = 0.0
+                for m in range(i, n):
+                    t += Li[k, m, i] * Li[k, m, j]
+                s += w[k] * t
+            J[i, j] = s
+    if not _cholesky(J, R, n) or not _numerically_positive_definite(R, n):
+        return False
+    _lower_inverse(R, Ri, n)
+    return True
+
+
+@_jit
+def _many_value(Ri, W, wi, n, kind):
+    """``_criteria.criterion_of_factor``: trace(W P) or log det P for P = Ri^T Ri."""
+    value = 0.0
+    if kind == KIND_DET:
+        for i in range(n):
+            value += math.log(abs(Ri[i, i]))
+        return 2.0 * value
+    if kind == KIND_TRACE:
+        for i in range(n):
+            for j in range(i + 1):
+                value += Ri[i, j] * Ri[i, j]
+        return value
+    for k in range(n):
+        for i in range(n):
+            for j in range(n):
+                value += W[wi, i, j] * Ri[k, i] * Ri[k, j]
+    return value
+
+
+@_jit
+def _many_evaluate(Li, w, W, wi, count, n, kind, J, R, Ri, C, B, G, V, g, H, hessian):
+    """f, and g_k = -df/dw_k, H (``_ci_weights._simplex_weights``'s evaluate) at w.
+
+    C_k = R^-1 L_k^-T, B_k = R^-T C_k; trace: g_k = ||B_k||^2, H_ij = 2 <B_i C_i^T, B_j C_j^T>;
+    weighted: g_k = trace(W B_k B_k^T), H_ij = <G_i, W G_j> + <G_j, W G_i> with G = B C^T
+    (the symmetrised ``2 trace_curvature``); det: g_k = ||C_k||^2, H_ij = <C_i C_i^T, C_j C_j^T>.
+    Returns (ok, f).
+    """
+    if not _many_information(Li, w, count, n, J, R, Ri):
+        return False, 0.0
+    f = _many_value(Ri, W, wi, n, kind)
+    if not hessian:
+        return True, f
+    for k in range(count):
+        for i in range(n):
+            for j in range(n):
+                s = 0.0
+                for m in range(min(i, j) + 1):
+                    s += Ri[i, m] * Li[k, j, m]
+                C[k, i, j] = s
+        for i in range(n):
+            for j in range(n):
+                s = 0.0
+                for m in range(i, n):
+                    s += Ri[m, i] * C[k, m, j]
+                B[k, i, j] = s
+        s = 0.0
+        if kind == KIND_DET:
+            for i in range(n):
+                for j in range(n):
+                    s += C[k, i, j] * C[k, i, j]
+        elif kind == KIND_TRACE:
+            for i in range(n):
+                for j in range(n):
+                    s += B[k, i, j] * B[k, i, j]
+        else:
+            for i in range(n):
+                for j in range(n):
+                    t = 0.0
+                    for m in range(n):
+                        t += B[k, i, m] * B[k, j, m]
+                    s += W[wi, i, j] * t
+        g[k] = s
+        # G_k = B_k C_k^T (trace criteria) or C_k C_k^T (det); V_k = W G_k (weighted)
+        left = C[k] if kind == KIND_DET else B[k]
+        for i in range(n):
+            for j in range(n):
+                s = 0.0
+                for m in range(n):
+                    s += left[i, m] * C[k, j, m]
+                G[k, i, j] = s
+        if kind == KIND_WEIGHTED:
+            for i in range(n):
+                for j in range(n):
+                    s = 0.0
+                    for m in range(n):
+                        s += W[wi, i, m] * G[k, m, j]
+                    V[k, i, j] = s
+    factor = 1.0 if kind == KIND_DET else 2.0
+    for a in range(count):
+        for b in range(a + 1):
+            s = 0.0
+            if kind == KIND_WEIGHTED:
+                for i in range(n):
+                    for j in range(n):
+                        s += 0.5 * (G[a, i, j] * V[b, i, j] + G[b, i, j] * V[a, i, j])
+            else:
+                for i in range(n):
+                    for j in range(n):
+                        s += G[a, i, j] * G[b, i, j]
+            H[a, b] = factor * s
+            H[b, a] = factor * s
+    return True, f
+
+
+@_jit
+def _reduced_newton(H, g, free, w, count, Hr, Lr, rhs, d, index, spread):
+    """The Newton step on the face of the free weights, in the coordinates of all free
+    weights but the pivot p (the largest free weight; d_p = -sum of the others):
+    H_r d_r = g_r with H_r = Z^T H Z, g_r = g_i - g_p. Returns (ok, mu, ||H_r^-1||_F);
+    mu = g_p - (H d)_p is the common gradient level of the face. ok False where H_r is not
+    numerically positive definite, or where the squared diagonal spread of its Cholesky
+    factor (a lower bound of its condition number) exceeds ``spread``."""
+    p = -1
+    for i in range(count):
+        if free[i] and (p < 0 or w[i] > w[p]):
+            p = i
+    for i in range(count):
+        d[i] = 0.0
+    k = 0
+    for i in range(count):
+        if free[i] and i != p:
+            index[k] = i
+            k += 1
+    inverse_norm = 0.0
+    if k > 0:
+        for a in range(k):
+            i = index[a]
+            rhs[a] = g[i] - g[p]
+            for b in range(k):
+                j = index[b]
+                Hr[a, b] = H[i, j] - H[i, p] - H[p, j] + H[p, p]
+        if not _cholesky(Hr, Lr, k) or not _numerically_positive_definite(Lr, k):
+            return False, 0.0, math.inf
+        if not _diagonal_spread_squared(Lr, k) <= spread:
+            return False, 0.0, math.inf
+        # solve Lr Lr^T y = rhs
+        for a in range(k):
+            s = rhs[a]
+            for b in range(a):
+                s -= Lr[a, b] * rhs[b]
+            rhs[a] = s / Lr[a, a]
+        for a in range(k - 1, -1, -1):
+            s = rhs[a]
+            for b in range(a + 1, k):
+                s -= Lr[b, a] * rhs[b]
+            rhs[a] = s / Lr[a, a]
+        total = 0.0
+        for a in range(k):
+            d[index[a]] = rhs[a]
+            total += rhs[a]
+        d[p] = -total
+        # ||H_r^-1||_F = ||Lr^-1||_F^2 at most: Lr^-1 into Hr (free now)
+        _lower_inverse(Lr, Hr, k)
+        for a in range(k):
+            for b in range(a + 1):
+                inverse_norm += Hr[a, b] * Hr[a, b]
+    s = 0.0
+    for j in range(count):
+        s += H[p, j] * d[j]
+    return True, g[p] - s, inverse_norm
+
+
+@_jit
+def _pinv_newton(H, g, free, count, kkt, vectors, lam, rhs, solution, d):
+    """``_optimize._face_newton`` (without compression) for one problem: the minimum-norm
+    solution of the normalised KKT system ``[H_FF / c, 1; 1^T, 0] [d; nu] = [g_F / c; 0]``
+    (identity rows for the fixed weights) by its pseudo-inverse with numpy's cut-off
+    ``1e-13`` of the largest eigenvalue (a symmetric matrix: its singular values are the
+    eigenvalues' moduli), so that directions in which f is flat get no step. Returns
+    (ok, mu) with mu = nu c, the common gradient level of the face."""
+    curvature = 0.0
+    for i in range(count):
+        if free[i]:
+            curvature = max(curvature, H[i, i])
+    curvature = max(curvature, 2.2250738585072014e-308)
+    m = count + 1
+    for i in range(count):
+        for j in range(count):
+            if free[i] and free[j]:
+                kkt[i, j] = H[i, j] / curvature
+            else:
+                kkt[i, j] = 1.0 if (i == j and not free[i]) else 0.0
+        kkt[i, count] = 1.0 if free[i] else 0.0
+        kkt[count, i] = kkt[i, count]
+        rhs[i] = g[i] / curvature if free[i] else 0.0
+    kkt[count, count] = 0.0
+    rhs[count] = 0.0
+    if not _jacobi_eigh(kkt, lam, vectors, m):
+        return False, 0.0
+    top = 0.0
+    for k in range(m):
+        top = max(top, abs(lam[k]))
+    for i in range(m):
+        solution[i] = 0.0
+    for k in range(m):
+        if abs(lam[k]) > _RCOND * top:
+            s = 0.0
+            for i in range(m):
+                s += vectors[i, k] * rhs[i]
+            s /= lam[k]
+            for i in range(m):
+                solution[i] += vectors[i, k] * s
+    for i in range(count):
+        d[i] = solution[i] if free[i] else 0.0
+    return True, solution[count] * curvature
+
+
+@_jit
+def _scaled_condition(A, Ai, n):
+    """``_criteria.scaled_condition`` of one triangular factor and its inverse."""
+    total = 0.0
+    for j in range(n):
+        r = 0.0
+        for m in range(n):
+            r += A[j, m] * A[j, m]
+        r = math.sqrt(r)
+        for i in range(n):
+            t = Ai[i, j] * r
+            total += t * t
+    return n * total
+
+
+@_jit
+def _many_item(b, x, L, W, kind, out_w, out_iter, out_gap, out_floor, out_computed, out_x,
+               out_P, out_K, out_value, out_log, out_status, references, Li, C, B, G, V,
+               work2, work1, workN, workNN, free, index, work3):
+    """One item of :func:`ci_many_optimal` (the rest: its scratch arrays)."""
+    count = x.shape[1]
+    n = x.shape[2]
+    wi = b if W.shape[0] > 1 else 0
+    J = work2[0]
+    R = work2[1]
+    Ri = work2[2]
+    w = workN[0]
+    g = workN[1]
+    d = workN[2]
+    trial = workN[3]
+    rhs = workN[4]
+    gt = workN[5]
+    lam = workN[6]
+    solution = workN[7]
+    previous_d = workN[8]
+    H = workNN[0]
+    Hr = workNN[1]
+    Lr = workNN[2]
+    kkt = workNN[3]
+    vectors = workNN[4]
+    out_status[b] = 1  # handed back unless certified below
+    kappa_inputs = 0.0
+    for k in range(count):
+        _lower_inverse(L[b, k], Li[k], n)
+        kappa_inputs = max(kappa_inputs, _scaled_condition(L[b, k], Li[k], n))
+    for k in range(count):
+        w[k] = 1.0 / count
+        free[k] = True
+    iterations = 0
+    certified = False
+    f = 0.0
+    previous_gap = math.inf
+    previous_last = False
+    previous_t = 0.0
+    previous_slope = 0.0
+    evaluate = True
+    for _ in range(2 * _MANY_MAX_ITER + 2):
+        if evaluate:
+            ok, f = _many_evaluate(Li, w, W, wi, count, n, kind, J, R, Ri, C, B, G, V, g, H,
+                                   True)
+            if not ok or not math.isfinite(f):
+                return
+        evaluate = True
+        along = 0.0
+        top = -math.inf
+        g_scale = 0.0
+        for k in range(count):
+            along += w[k] * g[k]
+            top = max(top, g[k])
+            g_scale = max(g_scale, abs(g[k]))
+        gap = max(top - along, 0.0)
+        f_scale = max(abs(f), 1.0) if kind == KIND_DET else abs(f)
+        if gap <= _MANY_GTOL * (1.0 if kind == KIND_DET else abs(f)):
+            certified = True
+            break
+        if iterations >= _MANY_MAX_ITER:
+            return
+        # After a step that kept more than half of its slope along its direction (f nearly
+        # linear there, the Hessian overstating its curvature), numpy continues along the
+        # same line by the secant of the derivative, up to the boundary (its "extend").
+        extend = False
+        now = 0.0
+        if previous_t > 0.0 and -previous_slope > 64.0 * _EPS * f_scale:
+            for k in range(count):
+                now -= g[k] * previous_d[k]
+            extend = now < 0.5 * previous_slope
+        ok, mu, _ = _reduced_newton(H, g, free, w, count, Hr, Lr, rhs, d, index, 1e10)
+        if not ok:  # a singular face (more weights than the criterion resolves): pinv
+            ok, mu = _pinv_newton(H, g, free, count, kkt, vectors, lam, rhs, solution, d)
+            if not ok:
+                return
+        if extend:
+            for k in range(count):
+                d[k] = previous_d[k]
+        step = 0.0
+        slope = 0.0  # of f along d: -g.d
+        for k in range(count):
+            step = max(step, abs(d[k]))
+            slope -= g[k] * d[k]
+        small_step = step < 1e-12 and not extend
+        rounding = -slope <= 2.5e-13 * f_scale and not extend
+        # release every fixed weight (tied to rounding) whose gradient lies furthest
+        # above the level of the free ones, once the face is solved (as numpy)
+        most = 0.0
+        for k in range(count):
+            if not free[k]:
+                most = max(most, g[k] - mu)
+        release = most > 1e-12 * g_scale
+        iterations += 1
+        if (small_step or rounding) and release:
+            for k in range(count):
+                if not free[k] and g[k] - mu > 1e-12 * g_scale and (
+                        g[k] - mu >= most * (1.0 - 1e-9)):
+                    free[k] = True
+            previous_t = 0.0
+            previous_last = False
+            evaluate = False  # the same point: the next iteration solves the larger face
+            continue
+        last = False
+        if small_step or rounding:
+            # a step at the rounding level is taken unchecked (numpy's "last"); a zero
+            # step, or one that did not halve the gap, is where numpy turns to
+            # Frank-Wolfe: handed back
+            if step <= 4.0 * _EPS or (previous_last and not gap <= 0.5 * previous_gap):
+                return
+            last = True
+        elif not (slope < 0.0):
+            return
+        t_max = math.inf
+        for k in range(count):
+            if free[k] and d[k] < 0.0:
+                t_max = min(t_max, w[k] / -d[k])
+        if not (t_max > 0.0):
+            # blocked at zero (a weight just released): a step towards the vertices of the
+            # largest gradient, as numpy
+            shares = 0
+            for k in range(count):
+                if g[k] >= top - 1e-12 * g_scale:
+                    shares += 1
+            slope = 0.0
+            for k in range(count):
+                target = 0.0
+                if g[k] >= top - 1e-12 * g_scale:
+                    target = 1.0 / shares
+                    free[k] = True
+                d[k] = target - w[k]
+                slope -= g[k] * d[k]
+            t_max = math.inf
+            for k in range(count):
+                if free[k] and d[k] < 0.0:
+                    t_max = min(t_max, w[k] / -d[k])
+            if not (t_max > 0.0) or not (slope < 0.0):
+                return
+        t = min(1.0, t_max)
+        if extend:
+            further = t_max
+            if now > previous_slope:
+                further = previous_t * now / (previous_slope - now)
+            if math.isnan(further):
+                further = 0.0
+            t = min(max(further, 0.0), t_max)
+        if not last:
+            accepted = False
+            for _search in range(60):
+                for k in range(count):
+                    trial[k] = max(w[k] + t * d[k], 0.0)
+                ok, f_trial = _many_evaluate(Li, trial, W, wi, count, n, kind, J, R, Ri, C,
+                                             B, G, V, gt, H, False)
+                if ok and f_trial <= f + 1e-4 * t * slope + 1e-15 * abs(f):
+                    accepted = True
+                    break
+                t *= 0.5
+            if not accepted:
+                return
+        blocked = t == t_max
+        previous_t = t if not (blocked or last) else 0.0
+        previous_slope = slope
+        previous_last = last
+        previous_gap = gap
+        total = 0.0
+        for k in range(count):
+            previous_d[k] = d[k]  # the direction, for the extension test above
+            value = max(w[k] + t * d[k], 0.0)
+            if blocked and free[k] and d[k] < 0.0 and w[k] / -d[k] == t_max:
+                value = 0.0
+                free[k] = False
+            w[k] = value
+            total += value
+        for k in range(count):
+            w[k] /= total
+    if not certified:
+        return
+    # the certificate of the numpy path at these weights (``_fuse_and_certify``): f, g, R
+    # and R^-1 are those of the last evaluation, at w
+    g_max = 0.0
+    along = 0.0
+    for k in range(count):
+        g_max = max(g_max, abs(g[k]))
+        along += w[k] * g[k]
+    kappa = _scaled_condition(R, Ri, n) + kappa_inputs
+    r = 4.0 * (n + 1) * _EPS * kappa * g_max
+    top = -math.inf
+    shifted = -math.inf
+    for k in range(count):
+        top = max(top, g[k])
+        shifted = max(shifted, g[k] + 2.0 * r * (1.0 - w[k]))
+    summed = count * _EPS * abs(along)
+    computed = max(top - along, 0.0)
+    gap = max(shifted - along, 0.0) + summed
+    floor = 2.0 * r + summed
+    if kind != KIND_DET:
+        gap /= f
+        floor /= f
+        computed /= f
+    if not gap <= GAP_TOL:
+        return
+    # the weights must be determined by the gradients to _WEIGHT_AGREEMENT (both backends
+    # then return them to it): the Hessian reduced to the face of the positive weights
+    for k in range(count):
+        free[k] = w[k] > 0.0
+    ok, _, inverse_norm = _reduced_newton(H, g, free, w, count, Hr, Lr, rhs, d, index,
+                                          math.inf)
+    if not ok or not inverse_norm * r <= _WEIGHT_AGREEMENT:
+        return
+    out_iter[b] = iterations
+    out_gap[b] = gap
+    out_floor[b] = floor
+    out_computed[b] = computed
+    # the reference estimate (``_information.reference_estimates``) and the fusion
+    best = -1
+    best_precision = -math.inf
+    for k in range(count):
+        out_w[b, k] = w[k]
+        precision = -1.0
+        if w[k] > 0.0:
+            s = 0.0
+            for i in range(n):
+                for j in range(i + 1):
+                    s += L[b, k, i, j] * L[b, k, i, j]
+            precision = w[k] / s
+            if not math.isfinite(precision):
+                precision = 0.0 if math.isnan(precision) else 1.7976931348623157e308
+        if precision > best_precision:
+            best_precision = precision
+            best = k
+    references[b] = best
+    _weighted_item(b, x, L, out_w, references, W, kind, out_x, out_P, out_K, out_value,
+                   out_log, out_status, work2, work1, work3)
+    if out_status[b] != 0:
+        out_status[b] = 2
+
+
+@_jit_parallel
+def ci_many_optimal(x, L, W, kind, out_w, out_iter, out_gap, out_floor, out_computed, out_x,
+                    out_P, out_K, out_value, out_log, out_status, references):
+    """Criterion-optimal CI of N >= 3 estimates per item (``_ci_weights._simplex_weights``,
+    the active-set phase, and ``_fuse_and_certify``), with the certificate's parts and the
+    criterion report of the fused covariance.
+
+    ``out_status``: 0 done; 1 not certified here (the numpy path solves the item); 2 the
+    fused information or covariance at the weights is not numerically positive definite.
+    """
+    size = x.shape[0]
+    count = x.shape[1]
+    n = x.shape[2]
+    chunks = (size + _CHUNK - 1) // _CHUNK
+    for chunk in prange(chunks):
+        Li = np.empty((count, n, n))
+        C = np.empty((count, n, n))
+        B = np.empty((count, n, n))
+        G = np.empty((count, n, n))
+        V = np.empty((count, n, n))
+        work2 = np.empty((8, n, n))
+        work1 = np.empty((1, n))
+        workN = np.empty((9, count + 1))
+        workNN = np.empty((5, count + 1, count + 1))
+        free = np.empty(count, dtype=np.bool_)
+        index = np.empty(count, dtype=np.int64)
+        work3 = np.empty((count, n, n))
+        for b in range(chunk * _CHUNK, min(size, (chunk + 1) * _CHUNK)):
+            _many_item(b, x, L, W, kind, out_w, out_iter, out_gap, out_floor, out_computed,
+                       out_x, out_P, out_K, out_value, out_log, out_status, references, Li,
+                       C, B, G, V, work2, work1, workN, workNN, free, index, work3)
+
+
+@_jit
+def ci_many_optimal_serial(x, L, W, kind, out_w, out_iter, out_gap, out_floor, out_computed,
+                           out_x, out_P, out_K, out_value, out_log, out_status, references):
+    """:func:`ci_many_optimal` without threads (small batches)."""
+    count = x.shape[1]
+    n = x.shape[2]
+    Li = np.empty((count, n, n))
+    C = np.empty((count, n, n))
+    B = np.empty((count, n, n))
+    G = np.empty((count, n, n))
+    V = np.empty((count, n, n))
+    work2 = np.empty((8, n, n))
+    work1 = np.empty((1, n))
+    workN = np.empty((9, count + 1))
+    workNN = np.empty((5, count + 1, count + 1))
+    free = np.empty(count, dtype=np.bool_)
+    index = np.empty(count, dtype=np.int64)
+    work3 = np.empty((count, n, n))
+    for b in range(x.shape[0]):
+        _many_item(b, x, L, W, kind, out_w, out_iter, out_gap, out_floor, out_computed,
+                   out_x, out_P, out_K, out_value, out_log, out_status, references, Li, C, B,
+                   G, V, work2, work1, workN, workNN, free, index, work3)

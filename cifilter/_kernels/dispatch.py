@@ -9,6 +9,8 @@ covariance) are solved by the numpy path, which certifies, re-solves or raises i
 error for them, so results, ``info`` and errors are those of the numpy path.
 """
 
+import contextlib
+
 import numpy as np
 
 from .._numerics.criteria import criterion_report, gap_converged
@@ -17,16 +19,21 @@ from .._numerics.validation import Estimates
 from ..backend import get_backend, use_kernels
 from . import background
 
-__all__ = ["optimal_pair", "report", "weighted"]
+__all__ = ["AUTO_MAX_DIM", "MANY_MAX_COUNT", "PIN_BLAS", "optimal_many", "optimal_pair",
+           "report", "weighted"]
 
-_calls = {"kernels": 0, "numpy_while_compiling": 0}
+_calls = {"kernels": 0, "numpy_while_compiling": 0, "handed_back": 0}
 
 
 def _go(size, *arrays):
-    """Whether this call runs on the kernels. Under ``"auto"`` only when they are ready
-    (compiled in this process or loaded from numba's cache): a call never waits for a
-    compile; the first one that finds them missing starts the background compilation."""
+    """Whether this call runs on the kernels. Under ``"auto"`` only for problems of at most
+    :data:`AUTO_MAX_DIM` dimensions (``arrays[0]`` the means, ``(..., n)``) and when the
+    kernels are ready (compiled in this process or loaded from numba's cache): a call never
+    waits for a compile; the first one that finds them missing starts the background
+    compilation."""
     if not use_kernels(size, *arrays):
+        return False
+    if get_backend() == "auto" and arrays[0].shape[-1] > AUTO_MAX_DIM:
         return False
     if get_backend() == "auto" and not background.ready():
         _calls["numpy_while_compiling"] += 1
@@ -38,7 +45,8 @@ def _go(size, *arrays):
 def report():
     """Where this process's eligible calls went: ``kernels`` (calls run on the kernels),
     ``numpy_while_compiling`` (calls under ``"auto"`` that numpy answered because the
-    kernels were not ready), and the kernels' readiness (:func:`background.status`)."""
+    kernels were not ready), ``handed_back`` (items of optimal-weight calls that the kernels
+    handed back to the numpy path), and the kernels' readiness (:func:`background.status`)."""
     return dict(_calls, **background.status())
 
 _KINDS = {"trace": 0, "det": 1, "weighted-trace": 2, None: 3}
@@ -48,6 +56,51 @@ _KINDS = {"trace": 0, "det": 1, "weighted-trace": 2, None: 3}
 # microseconds on an idle machine and milliseconds on a loaded one (measured: 256 pairs took
 # 9.5 ms threaded against 0.6 ms for 128 serial ones, on 2 cores shared with other jobs).
 THREADED_MIN = 2048
+
+
+# Under "auto", problems of more than this many dimensions go to the numpy (LAPACK) path:
+# there the kernels' loops (cyclic Jacobi, unblocked products) stop beating LAPACK's blocked
+# routines. Measured with ``python benchmarks/bench_many.py --dims`` (trace-optimal CI of
+# 4096 pairs per batch, numpy and numba interleaved in one run, BLAS pinned to one thread
+# around the threaded kernels; 2 cores shared with other jobs, load 13-15): numpy's time
+# over the kernels' 7.5x at n = 2, 3.9x at 4, 1.8x at 8 to 12, 1.2x at 16, and with 2048
+# pairs 0.94x at 24 and 1.07x at 32 (noise of that load: the unpinned kernels 1.25x and
+# 2.4x there). The kernels win up to 16 and no longer clearly beyond.
+AUTO_MAX_DIM = 16
+
+# Limit BLAS to one thread around the threaded kernels (threadpoolctl, when installed):
+# numba's threads and OpenBLAS's would otherwise share the cores (OpenBLAS's threads keep
+# spinning after a call). A switch for ``benchmarks/bench_many.py`` to measure both.
+PIN_BLAS = True
+_blas: list = []
+
+
+def _blas_pools():
+    """threadpoolctl's BLAS pools of this process (None without threadpoolctl), once."""
+    if not _blas:
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:
+            _blas.append(None)
+        else:
+            _blas.append(ThreadpoolController().select(user_api="blas"))
+    return _blas[0]
+
+
+def _threads(size):
+    """A context for one kernel call: BLAS limited to one thread where both the kernel
+    (threaded, numba with more than one thread) and BLAS (more than one thread) would run
+    threads; otherwise nothing."""
+    if not PIN_BLAS or size < THREADED_MIN:
+        return contextlib.nullcontext()
+    pools = _blas_pools()
+    if pools is None or not any(pool.num_threads > 1 for pool in pools.lib_controllers):
+        return contextlib.nullcontext()
+    import numba
+
+    if numba.get_num_threads() < 2:
+        return contextlib.nullcontext()
+    return pools.limit(limits=1)
 
 
 def _kernel(name, size):
@@ -117,11 +170,14 @@ def optimal_pair(est, kind, W, numpy_path):
     iterations = np.zeros(size, dtype=int)
     status = np.empty(size, dtype=np.int8)
     x_out, P_out, gains = np.empty((size, n)), np.empty((size, n, n)), np.empty((size, 2, n, n))
-    _kernel("ci_pair_optimal", size)(x, P, L, Wk, _KINDS[kind], omega, iterations, gap, floor,
-                                     computed, x_out, P_out, gains, value, log_value, status)
+    with _threads(size):
+        _kernel("ci_pair_optimal", size)(x, P, L, Wk, _KINDS[kind], omega, iterations, gap,
+                                         floor, computed, x_out, P_out, gains, value,
+                                         log_value, status)
     weights = np.stack([omega, 1.0 - omega], axis=-1)
     converged = gap_converged(gap, floor, computed)
     index = np.flatnonzero(status)
+    _calls["handed_back"] += int(index.size)
     if index.size:
         sub = _rows(est, x, P, L, index)
         w_s, info_s, (x_s, P_s, K_s) = numpy_path(sub, sub_W(index))
@@ -139,6 +195,64 @@ def optimal_pair(est, kind, W, numpy_path):
     result = (x_out.reshape(shape + (n,)), P_out.reshape(shape + (n, n)),
               gains.reshape(shape + (2, n, n)))
     return weights.reshape(shape + (2,)), info, result, _report(kind, value, log_value, shape)
+
+
+# The compiled solver of N >= 3 estimates runs the numpy path's active-set phase, which the
+# numpy path runs alone below ``_numerics.optimize.INTERIOR_MIN_COUNT`` estimates; from there
+# on numpy's interior-point phase leads and the kernel is not used.
+MANY_MAX_COUNT = 11
+
+
+def optimal_many(est, kind, W, numpy_path):
+    """Criterion-optimal CI of 3 to :data:`MANY_MAX_COUNT` estimates per batch item, or
+    None (numpy backend, or another N).
+
+    Returns ``(weights, info, (x, P, gains), report)`` as
+    :func:`cifilter.rules._ci_weights.optimal_weights` with the criterion report of ``P``;
+    ``numpy_path(sub_estimates, sub_W)`` solves the items the kernel hands back (those it
+    cannot certify, whose weights the rounding of the gradients does not determine to
+    1e-10, or whose fused information or covariance is not numerically positive definite).
+    """
+    count = est.count
+    if not 3 <= count <= MANY_MAX_COUNT:
+        return None
+    size = _size(est)
+    if not _go(size, est.x, est.P, est.L):
+        return None
+    shape, n = est.batch_shape, est.dim
+    x, P, L = _flat(est, size)
+    Wk, sub_W = _flat_criterion(W, shape, size, n)
+    weights = np.zeros((size, count))
+    gap, floor, computed, value, log_value = (np.empty(size) for _ in range(5))
+    iterations = np.zeros(size, dtype=int)
+    status = np.empty(size, dtype=np.int8)
+    references = np.zeros(size, dtype=np.int64)
+    x_out, P_out = np.empty((size, n)), np.empty((size, n, n))
+    gains = np.empty((size, count, n, n))
+    with _threads(size):
+        _kernel("ci_many_optimal", size)(x, L, Wk, _KINDS[kind], weights, iterations, gap,
+                                         floor, computed, x_out, P_out, gains, value,
+                                         log_value, status, references)
+    converged = gap_converged(gap, floor, computed)
+    index = np.flatnonzero(status)
+    _calls["handed_back"] += int(index.size)
+    if index.size:
+        sub = _rows(est, x, P, L, index)
+        w_s, info_s, (x_s, P_s, K_s) = numpy_path(sub, sub_W(index))
+        report_s = criterion_report(P_s, kind, sub_W(index))
+        weights[index], iterations[index] = w_s, info_s["iterations"]
+        gap[index], floor[index] = info_s["gap"], info_s["gap_floor"]
+        converged[index] = info_s["converged"]
+        x_out[index], P_out[index], gains[index] = x_s, P_s, K_s
+        value[index] = report_s["value"]
+        if kind == "det":
+            log_value[index] = report_s["log_value"]
+    info = {"iterations": iterations.reshape(shape), "converged": converged.reshape(shape),
+            "gap": gap.reshape(shape), "gap_floor": floor.reshape(shape), "solver": "simplex"}
+    result = (x_out.reshape(shape + (n,)), P_out.reshape(shape + (n, n)),
+              gains.reshape(shape + (count, n, n)))
+    return (weights.reshape(shape + (count,)), info, result,
+            _report(kind, value, log_value, shape))
 
 
 def weighted(est, weights, kind, W, numpy_path):
@@ -162,8 +276,9 @@ def weighted(est, weights, kind, W, numpy_path):
     gains = np.empty((size, count, n, n))
     # the numpy path's reference estimate (the remainder's gain), so that both round alike
     references = np.ascontiguousarray(reference_estimates(w, L), dtype=np.int64)
-    _kernel("weighted_fusion", size)(x, L, w, references, Wk, _KINDS[kind], x_out, P_out,
-                                     gains, value, log_value, status)
+    with _threads(size):
+        _kernel("weighted_fusion", size)(x, L, w, references, Wk, _KINDS[kind], x_out, P_out,
+                                         gains, value, log_value, status)
     index = np.flatnonzero(status)
     if index.size:
         if est.batch_shape:

@@ -23,20 +23,30 @@ get copies) are never modified.
 
 import math
 import numbers
+from collections.abc import Sequence
 from typing import Any, Callable, NamedTuple, Optional
 
 import numpy as np
 from scipy.linalg import lapack
 
-from .linalg import MAX_CONDITION, cholesky_single, ill_conditioned, symmetrize
-from .validation import PSD_RTOL, SYMMETRY_RTOL, as_estimates, as_float_array, check_psd
+from .linalg import MAX_CONDITION, cholesky, cholesky_single, ill_conditioned, symmetrize
+from .validation import (
+    PSD_RTOL,
+    SYMMETRY_RTOL,
+    Estimates,
+    as_estimates,
+    as_float_array,
+    check_psd,
+)
 
 __all__ = [
     "PartialEstimates",
     "StepMotion",
     "added_to_reference",
+    "align_estimates",
     "align_in_time",
     "as_partial_estimates",
+    "back_noise",
     "check_observation_matrices",
     "check_times",
     "motion_matrices",
@@ -132,9 +142,9 @@ def check_observation_matrices(H: Any, count: int) -> Optional[tuple]:
 class _Single(NamedTuple):
     """One validated estimate (the fields :func:`as_partial_estimates` uses)."""
 
-    x: np.ndarray  # (..., 1, m)
-    P: np.ndarray  # (..., 1, m, m)
-    L: np.ndarray  # (..., 1, m, m)
+    x: np.ndarray  # (..., m)
+    P: np.ndarray  # (..., m, m)
+    L: np.ndarray  # (..., m, m)
     column: bool
 
     @property
@@ -143,7 +153,7 @@ class _Single(NamedTuple):
 
     @property
     def batch_shape(self):
-        return self.x.shape[:-2]
+        return self.x.shape[:-1]
 
 
 def _usual_single(x, P):
@@ -157,17 +167,27 @@ def _usual_single(x, P):
         return None
     if not math.isfinite(float(P.sum()) + float(x.sum())):
         return None
-    asymmetry = float(np.abs(P - P.T).max())
-    if asymmetry > SYMMETRY_RTOL * float(np.abs(P.diagonal()).max()):
-        return None
-    P = 0.5 * (P + P.T)
+    P_T = P.T
+    if (P == P_T).all():
+        P = P.copy()  # (0.5 (P + P^T) is P: the symmetrisation below, without its sums)
+    else:
+        asymmetry = float(np.abs(P - P_T).max())
+        if asymmetry > SYMMETRY_RTOL * float(np.abs(P.diagonal()).max()):
+            return None
+        P = 0.5 * (P + P_T)
     L = cholesky_single(P)
     if L is None:
         return None
-    return _Single(x.reshape(1, m).copy(), P[None], L[None], x.ndim == 2)
+    return _Single(x.reshape(m).copy(), P, L, x.ndim == 2)
 
 
-def as_partial_estimates(pairs: list, H: tuple, labels: Optional[tuple] = None
+def _single(estimates):
+    """The one estimate of validated :class:`Estimates` (N = 1) as a :class:`_Single`."""
+    return _Single(estimates.x[..., 0, :], estimates.P[..., 0, :, :],
+                   estimates.L[..., 0, :, :], estimates.column)
+
+
+def as_partial_estimates(pairs: list, H: tuple, labels: Optional[Sequence[str]] = None
                          ) -> PartialEstimates:
     """Validate N ``(x, P)`` pairs, estimate ``i`` of ``H_i x``, into :class:`PartialEstimates`.
 
@@ -182,8 +202,8 @@ def as_partial_estimates(pairs: list, H: tuple, labels: Optional[tuple] = None
         label = f"estimates[{i}]" if labels is None else labels[i]
         usual = _usual_single(x, P)
         validated.append(usual if usual is not None else
-                         as_estimates([x], [P], min_count=1, names=("x", "P"),
-                                      labels=(label,)))
+                         _single(as_estimates([x], [P], min_count=1, names=("x", "P"),
+                                              labels=(label,))))
     where = [f"estimates[{i}]" if labels is None else labels[i] for i in range(count)]
     dims = [est.dim for est in validated]
     full = [i for i in range(count) if H[i] is None]
@@ -211,6 +231,11 @@ def as_partial_estimates(pairs: list, H: tuple, labels: Optional[tuple] = None
                 f"H[{i}] has shape {H[i].shape}, but the state has dimension {n} ({source}); "
                 f"H[{i}] needs {n} columns"
             )
+    if all(est.x.ndim == 1 for est in validated):  # no batch axes: nothing to broadcast
+        return PartialEstimates(tuple(est.x for est in validated),
+                                tuple(est.P for est in validated),
+                                tuple(est.L for est in validated), tuple(H), n,
+                                validated[0].column)
     try:
         batch = np.broadcast_shapes(*(est.batch_shape for est in validated))
     except ValueError:
@@ -221,9 +246,9 @@ def as_partial_estimates(pairs: list, H: tuple, labels: Optional[tuple] = None
         shape = batch + array.shape[array.ndim - tail:]
         return array if array.shape == shape else np.array(np.broadcast_to(array, shape))
 
-    xs = tuple(broadcast(est.x[..., 0, :], 1) for est in validated)
-    Ps = tuple(broadcast(est.P[..., 0, :, :], 2) for est in validated)
-    Ls = tuple(broadcast(est.L[..., 0, :, :], 2) for est in validated)
+    xs = tuple(broadcast(est.x, 1) for est in validated)
+    Ps = tuple(broadcast(est.P, 2) for est in validated)
+    Ls = tuple(broadcast(est.L, 2) for est in validated)
     return PartialEstimates(xs, Ps, Ls, tuple(H), n, validated[0].column)
 
 
@@ -381,7 +406,8 @@ def _inverse_by_lu(F, name):
 
 
 def retrodicted(x: np.ndarray, L: np.ndarray, F: np.ndarray, Q: np.ndarray,
-                name: str = "F", F_inv: Optional[np.ndarray] = None) -> tuple:
+                name: str = "F", F_inv: Optional[np.ndarray] = None,
+                Q_back: Optional[np.ndarray] = None) -> tuple:
     """A newer estimate brought back: ``F^-1 x`` and the bound
     ``F^-1 (P / alpha + Q / (1 - alpha)) F^-T`` (eqs. (T5)-(T6) of ``docs/methods/time.rst``,
     a bound by (T3)).
@@ -394,20 +420,25 @@ def retrodicted(x: np.ndarray, L: np.ndarray, F: np.ndarray, Q: np.ndarray,
     factorisation; a singular or numerically singular ``F`` (estimated condition number
     above 1e12) raises
     :class:`~cifilter._numerics.linalg.IllConditionedError`. Returns ``(x, P, alpha)``.
-    ``F_inv``, when given, is that inverse already computed (:meth:`StepMotion.inverse`).
+    ``F_inv``, when given, is that inverse already computed (:meth:`StepMotion.inverse`),
+    and ``Q_back``, when given with it, ``F_inv @ Q @ F_inv.T`` already computed and
+    exactly symmetric (:func:`back_noise`; :meth:`StepMotion.back`).
     """
     if F_inv is None:
         F_inv = _inverse_by_lu(F, name)
     A = F_inv @ L  # F^-1 L: F^-1 P F^-T = A A^T
-    Q_back = F_inv @ Q @ F_inv.T  # (the sum below is symmetrised)
+    if Q_back is None:
+        Q_back = back_noise(F_inv, Q)
     b = float(Q_back.trace())
     if A.ndim == 2:  # one estimate: Python floats
         a = float(np.square(A).sum())
         share = 1.0 if b == 0.0 else math.sqrt(a) / (math.sqrt(a) + math.sqrt(b))
+        # A @ A.T is exactly symmetric (numpy's syrk) and so is Q_back (back_noise's):
+        # so is P, without a symmetrisation
         P = (A @ A.T) / share
         if b > 0.0:
             P += Q_back / (1.0 - share)
-        return x @ F_inv.T, 0.5 * (P + P.T), share
+        return x @ F_inv.T, P, share
     alpha = retrodiction_alpha(np.square(A).sum(axis=(-2, -1)), b)
     P = A @ A.swapaxes(-1, -2) / alpha[..., None, None]
     if b > 0.0:
@@ -415,8 +446,16 @@ def retrodicted(x: np.ndarray, L: np.ndarray, F: np.ndarray, Q: np.ndarray,
     return x @ F_inv.T, symmetrize(P), alpha
 
 
-# (k, F's shape and bytes, Q's shape and bytes) -> [F^k, Q_k, F^-k or None], as checked
-# by motion_matrices; the least recently used entry goes first beyond _STEP_CACHE_SIZE
+def back_noise(F_inv: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``F^-1 Q F^-T``, the process noise brought back by :func:`retrodicted`, exactly
+    symmetric (symmetrised here, once, so that the sum it enters is symmetric)."""
+    Q_back = F_inv @ Q @ F_inv.T
+    return 0.5 * (Q_back + Q_back.swapaxes(-1, -2))
+
+
+# (k, F's shape and bytes, Q's shape and bytes) -> [F^k, Q_k, F^-k or None, F^-k Q_k F^-kT
+# or None], as checked by motion_matrices and computed by retrodicted; the least recently
+# used entry goes first beyond _STEP_CACHE_SIZE
 _STEP_CACHE: dict = {}
 _STEP_CACHE_SIZE = 64
 
@@ -467,7 +506,7 @@ class StepMotion:
         if entry is None:
             F_k, Q_k = motion_matrices(self, steps, n)
             F_k.flags.writeable = Q_k.flags.writeable = False
-            entry = [F_k, Q_k, None]
+            entry = [F_k, Q_k, None, None]
             if len(_STEP_CACHE) >= _STEP_CACHE_SIZE:
                 del _STEP_CACHE[next(iter(_STEP_CACHE))]
         _STEP_CACHE[key] = entry  # (re)inserted last: the most recently used
@@ -515,6 +554,35 @@ class StepMotion:
             entry[2] = F_inv
         return entry[2]
 
+    def back(self, steps: float, n: int, name: str) -> tuple:
+        """``F^-k`` and ``F^-k Q_k F^-kT`` as :func:`retrodicted` computes them (read-only,
+        cached on success).
+
+        Parameters
+        ----------
+        steps : float
+            The whole number of steps ``k``.
+        n : int
+            The state dimension.
+        name : str
+            The matrix's name in the error for a singular ``F^k``.
+
+        Returns
+        -------
+        tuple of ndarray
+            ``(F^-k, F^-k Q_k F^-kT)``.
+        """
+        entry = self._entry(steps, n)
+        if entry[3] is None:
+            if entry[2] is None:
+                F_inv = _inverse_by_lu(entry[0], name)
+                F_inv.flags.writeable = False
+                entry[2] = F_inv
+            Q_back = back_noise(entry[2], entry[1])
+            Q_back.flags.writeable = False
+            entry[3] = Q_back
+        return entry[2], entry[3]
+
 
 def align_in_time(x: list, L: list, movable: list, times: tuple, at: float,
                   motion: Optional[Callable[..., Any]], n: int, where: list) -> tuple:
@@ -531,31 +599,73 @@ def align_in_time(x: list, L: list, movable: list, times: tuple, at: float,
     for i, t in enumerate(times):
         if t == at:
             continue
-        if not movable[i]:
-            raise ValueError(
-                f"{where[i]} is at time {t:g} and estimates part of the state (H[{i}] is "
-                f"given); only estimates of the full state can be brought to at={at:g}"
-            )
-        if motion is None:
-            raise ValueError(
-                f"{where[i]} is at time {t:g}, not at={at:g}: give motion= (dt -> (F, Q)) "
-                "to bring it there"
-            )
-        if not callable(motion):
-            raise TypeError(f"motion must be callable (dt -> (F, Q)), got "
-                            f"{type(motion).__name__}")
-        dt = abs(at - t)
-        steps = motion if isinstance(motion, StepMotion) else None
-        F, Q = steps.checked(dt, n) if steps is not None else motion_matrices(motion, dt, n)
-        if t < at:
-            x[i], P[i] = predicted(x[i], L[i], F, Q)
-        else:
-            name = f"F of motion({dt!r}) (for {where[i]}, newer than at)"
-            x[i], P[i], alpha[i] = retrodicted(
-                x[i], L[i], F, Q, name=name,
-                F_inv=steps.inverse(dt, n, name) if steps is not None else None)
+        x[i], P[i], alpha[i] = _brought(x[i], L[i], movable[i], i, t, at, motion, n, where[i])
         changed.append(i)
     return x, P, alpha, changed
+
+
+def align_estimates(estimates: Estimates, times: Sequence[float], at: float,
+                    motion: Optional[Callable[..., Any]],
+                    labels: Optional[Sequence[str]] = None) -> tuple:
+    """Bring validated estimates of the full state from ``times[i]`` to ``at``, in place.
+
+    ``estimates`` (:class:`~cifilter._numerics.validation.Estimates`, the validation's own
+    copies) get, for each estimate that moves, its new mean, covariance and the Cholesky
+    factor of that covariance (a failure names ``"<estimate>'s P brought to at=..."``):
+    the numbers and errors of :func:`align_in_time` followed by those factors, without
+    the lists. ``labels`` name the estimates (``estimates[i]`` without). Returns ``alpha``
+    per estimate (None unless retrodicted).
+    """
+    x, P, L = estimates.x, estimates.P, estimates.L
+    single = x.ndim == 2  # one problem: plain indexing
+    n = x.shape[-1]
+    moved = []
+    for i, t in enumerate(times):
+        if t == at:
+            continue
+        where = f"estimates[{i}]" if labels is None else labels[i]
+        x_i, L_i = (x[i], L[i]) if single else (x[..., i, :], L[..., i, :, :])
+        moved.append((i, where) + _brought(x_i, L_i, True, i, t, at, motion, n, where))
+    alpha: list = [None] * len(times)
+    for i, where, x_i, P_i, alpha_i in moved:
+        L_i = cholesky_single(P_i) if single else None  # (what cholesky does first)
+        if L_i is None:
+            L_i = cholesky(P_i, f"{where}'s P brought to at={at:g}")
+        if single:
+            x[i], P[i], L[i] = x_i, P_i, L_i
+        else:
+            x[..., i, :], P[..., i, :, :], L[..., i, :, :] = x_i, P_i, L_i
+        alpha[i] = alpha_i
+    return tuple(alpha)
+
+
+def _brought(x, L, movable, i, t, at, motion, n, where):
+    """Estimate ``i`` (mean ``x``, factor ``L``) brought from ``t`` to ``at``: ``(x, P,
+    alpha)``, alpha None unless retrodicted."""
+    if not movable:
+        raise ValueError(
+            f"{where} is at time {t:g} and estimates part of the state (H[{i}] is "
+            f"given); only estimates of the full state can be brought to at={at:g}"
+        )
+    if motion is None:
+        raise ValueError(
+            f"{where} is at time {t:g}, not at={at:g}: give motion= (dt -> (F, Q)) "
+            "to bring it there"
+        )
+    if not callable(motion):
+        raise TypeError(f"motion must be callable (dt -> (F, Q)), got "
+                        f"{type(motion).__name__}")
+    dt = abs(at - t)
+    steps = motion if isinstance(motion, StepMotion) else None
+    F, Q = steps.checked(dt, n) if steps is not None else motion_matrices(motion, dt, n)
+    if t < at:
+        x, P = predicted(x, L, F, Q)
+        return x, P, None
+    name = f"F of motion({dt!r}) (for {where}, newer than at)"
+    if steps is None:
+        return retrodicted(x, L, F, Q, name=name)
+    F_inv, Q_back = steps.back(dt, n, name)
+    return retrodicted(x, L, F, Q, name=name, F_inv=F_inv, Q_back=Q_back)
 
 
 # ------------------------------------------------------------------------------- residuals

@@ -408,12 +408,11 @@ def _usual_estimates(xs, Ps):
         if (type(Pi) is not np.ndarray or type(xi) is not np.ndarray or Pi.shape != shape
                 or xi.shape != x_shape or Pi.dtype != np.float64 or xi.dtype != np.float64):
             return None
-    if batch:  # new arrays: the inputs are never aliased
-        P = np.stack(Ps, axis=-3)
-        x = np.stack([xi[..., 0] for xi in xs] if column else xs, axis=-2)
-    else:
-        P = np.array(Ps)
-        x = np.array(xs).reshape(len(xs), n)
+    if not batch:
+        return _usual_single_problem(xs, Ps, n, column)
+    # new arrays: the inputs are never aliased
+    P = np.stack(Ps, axis=-3)
+    x = np.stack([xi[..., 0] for xi in xs] if column else xs, axis=-2)
     if not np.isfinite(x).all():
         return None
     try:
@@ -422,20 +421,51 @@ def _usual_estimates(xs, Ps):
         return None
     if not exact:
         P = _symmetrized(P)
-    if not batch:
-        L = np.empty(P.shape)
-        for i in range(len(P)):  # LAPACK directly
-            factor, info = lapack.dpotrf(P[i], lower=1, clean=1)
-            if info:
-                return None
-            L[i] = factor
-    else:
-        try:
-            L = np.linalg.cholesky(P)
-        except np.linalg.LinAlgError:
-            return None
+    try:
+        L = np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return None
     # the input itself is finite (tested), so its factor is; a symmetrised copy may have
     # overflowed (entries near the largest float), and LAPACK passes inf and NaN through
+    if not exact and not np.isfinite(L).all():
+        return None
+    return Estimates(x, P, L, column)
+
+
+def _usual_single_problem(xs, Ps, n, column):
+    """:func:`_usual_estimates` for N checked float64 estimates without batch axes (the
+    single fusion of a tracker): the same arrays, bit for bit, in fewer passes.
+
+    The largest magnitude of the covariances' entries tests their finiteness (NaN or
+    infinite: the test below fails) and sends entries of at least ``2**1023`` (whose
+    symmetrised copy overflows; the general path refuses them) the long way; below it
+    neither ``P - P^T`` nor ``P + P^T`` overflows. An exact comparison with the transpose
+    tests the symmetry (no subtraction, so no floating-point warning to silence); a matrix
+    that is not exactly symmetric is tested as :func:`_check_symmetric` tests it and
+    symmetrised by :func:`_symmetrized`. Each matrix is factorised by LAPACK, as it always
+    was (the general path's batched factorisation may differ in the last bits, so this path
+    accepts exactly what the fast path always accepted). None whenever a test fails: the
+    general path decides and explains.
+    """
+    P = np.array(Ps)
+    x = np.array(xs).reshape(len(xs), n)
+    # (a NaN or an infinity in P makes its largest magnitude fail the test too)
+    if not (float(np.abs(P).max()) < _NO_OVERFLOW and np.isfinite(x).all()):
+        return None
+    P_T = P.swapaxes(-1, -2)
+    exact = bool((P == P_T).all())
+    if not exact:  # (finite, below 2**1023: the difference neither overflows nor is NaN)
+        asymmetry = np.abs(P - P_T).max(axis=(-2, -1))
+        scale = np.abs(np.diagonal(P, axis1=-2, axis2=-1)).max(axis=-1)
+        if (asymmetry > SYMMETRY_RTOL * scale).any():
+            return None
+        P = _symmetrized(P)
+    L = np.empty(P.shape)
+    for i in range(len(P)):  # LAPACK directly
+        factor, info = lapack.dpotrf(P[i], lower=1, clean=1)
+        if info:
+            return None
+        L[i] = factor
     if not exact and not np.isfinite(L).all():
         return None
     return Estimates(x, P, L, column)

@@ -65,6 +65,19 @@ def _as_estimate_list(other):
     )
 
 
+def _is_plain_pair(item):
+    """``item`` is a tuple of two float arrays, a vector (or column) and a matrix: an (x, P)
+    pair for :func:`_as_estimate_list`, which it answers sooner."""
+    if type(item) is not tuple or len(item) != 2:
+        return False
+    x, P = item
+    return (type(x) is np.ndarray and type(P) is np.ndarray and P.ndim == 2
+            and 1 <= x.ndim <= 2)
+
+
+_LABELS = ("this filter", "other")
+
+
 def _labels(count, other_is_list):
     """Names of the estimates in messages: this filter, then other or other[i]."""
     if not other_is_list:
@@ -87,7 +100,10 @@ def _single_estimates(estimates, labels):
     pairs = []
     style = None  # the shape of this filter's x when it is (n,) or (n, 1)
     for i, item in enumerate(estimates):
-        x, P = split_estimate(item, i, labels)
+        # (a plain 2-tuple is an (x, P) pair as it is: split_estimate's answer, without
+        # its attribute look-ups)
+        x, P = item if type(item) is tuple and len(item) == 2 else split_estimate(
+            item, i, labels)
         if (isinstance(x, np.ndarray) and isinstance(P, np.ndarray) and P.ndim == 2
                 and x.shape in ((P.shape[0],), (P.shape[0], 1))):
             # the usual filterpy shapes: nothing to check here
@@ -324,8 +340,11 @@ class FusionMixin:
         >>> result.info["at"], kf.x.shape
         (0.0, (2, 1))
         """
-        others = _as_estimate_list(other)
-        labels = _labels(1 + len(others), not (len(others) == 1 and others[0] is other))
+        if _is_plain_pair(other):  # the usual call: what the two lines below give it
+            others, labels = [other], _LABELS
+        else:
+            others = _as_estimate_list(other)
+            labels = _labels(1 + len(others), not (len(others) == 1 and others[0] is other))
         estimates = _single_estimates([(self.x, self.P)] + others, labels)
         if future is not None:
             if model is not None:
@@ -353,8 +372,8 @@ class FusionMixin:
                                 labels=labels, H=H, residual=residual, add=add, times=times,
                                 at=at, motion=motion)
         x_shape = np.shape(self.x)
-        x = np.asarray(result.x)
-        if x.size != math.prod(x_shape) or np.shape(result.P) != np.shape(self.P):
+        x = result.x  # (a read-only array)
+        if x.size != math.prod(x_shape) or result.P.shape != np.shape(self.P):
             raise ValueError(
                 f"fusion gave x of shape {x.shape} and P of shape {np.shape(result.P)}; a "
                 f"filter with x of shape {x_shape} fuses single (unbatched) estimates only"

@@ -456,6 +456,13 @@ def optimal_weights(est, kind, W, method="auto", L_inv=None, *, report=False,
         fast = kernels.optimal_pair(est, kind, W, numpy_path)
         if fast is not None:
             return fast if report else fast[:3]
+    elif compiled and est.count > 2 and method in ("auto", "simplex"):
+        def numpy_path(sub, sub_W):
+            return optimal_weights(sub, kind, sub_W, method, compiled=False)
+
+        fast = kernels.optimal_many(est, kind, W, numpy_path)
+        if fast is not None:
+            return fast if report else fast[:3]
     result = _optimal_weights(est, kind, W, method, L_inv)
     return result + (None,) if report else result
 

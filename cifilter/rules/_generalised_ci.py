@@ -21,6 +21,7 @@ The naive rule with ``H`` is the same fusion with all weights one (then ``P`` is
 covariance of the gains for independent errors).
 """
 
+import math
 from typing import Any, NamedTuple, Optional
 
 import numpy as np
@@ -33,6 +34,7 @@ from .._numerics.criteria import (
     criterion_gradient,
     criterion_of_factor,
     criterion_report,
+    criterion_value,
 )
 from .._numerics.information import (
     information_factors,
@@ -44,6 +46,8 @@ from .._numerics.linalg import ill_conditioned, lower_inverse_single, symmetrize
 from .._numerics.optimize import interval_gap, minimize_convex_scalar, minimize_convex_simplex
 from .._numerics.validation import check_weights, restore_style
 from ..result import FusionResult
+
+_EPS = float(np.finfo(float).eps)
 
 __all__ = [
     "SquareRoots",
@@ -111,7 +115,9 @@ def generalised_assembly(est, roots, weights, factors):
     ``K_i = w_i (P H_i^T L_i^-T) L_i^-1``; where some estimates are of the full state, the
     one of largest weight gets ``I - sum_{j != i} K_j H_j`` instead, so that
     ``sum_i K_i H_i = I`` holds to rounding (the fused mean is unbiased and its error is
-    ``sum_i K_i e_i``), and ``x = x_ref + sum_{j != ref} K_j (x_j - H_j x_ref)``.
+    ``sum_i K_i e_i``), and ``x = x_ref + sum_{j != ref} K_j (x_j - H_j x_ref)``; unless
+    that largest weight is 0, when every gain stays ``w_i P H_i^T P_i^-1`` and
+    ``x = sum_i K_i x_i``.
     ``P = sum_i (K_i L_i)(K_i L_i)^T / w_i`` over the positive weights: the bound of
     exactly these gains (eq. (H4)). Returns ``(x, P, gains)`` with ``gains`` a tuple of
     (..., n, m_i) arrays.
@@ -123,9 +129,18 @@ def generalised_assembly(est, roots, weights, factors):
         K = weights[..., i, None, None] * (PG @ roots.L_inv[i])
         gains.append(K)
     full = est.full
+    # the plain sum: the mean where no full-state estimate of positive weight takes the
+    # remainder
+    x = np.zeros(batch + (n,))
+    for i in range(count):
+        x = x + (gains[i] @ est.x[i][..., None])[..., 0]
     if full:
         candidates = np.array(full)
         reference = candidates[np.argmax(weights[..., candidates], axis=-1)]  # (...)
+        # a reference of weight 0 (every full-state estimate dropped, possible at rho = 1
+        # of partial CI or a given weight) keeps its zero gain: the remainder would be
+        # rounding amplified by the condition number, with no term for it in P
+        takes = np.take_along_axis(weights, reference[..., None], axis=-1)[..., 0] > 0.0
         others = np.zeros(batch + (n, n))
         x_ref = np.zeros(batch + (n,))
         for i in range(count):
@@ -135,18 +150,15 @@ def generalised_assembly(est, roots, weights, factors):
             if est.H[i] is None:
                 x_ref = np.where(mine[..., None], est.x[i], x_ref)
         remainder = np.eye(n) - others
-        x = x_ref.copy()
+        x_remainder = x_ref.copy()
         for i in range(count):
             mine = reference == i
             if est.H[i] is None:
-                gains[i] = np.where(mine[..., None, None], remainder, gains[i])
+                gains[i] = np.where((mine & takes)[..., None, None], remainder, gains[i])
             innovation = est.x[i] - (x_ref if est.H[i] is None else x_ref @ est.H[i].T)
             step = (gains[i] @ innovation[..., None])[..., 0]
-            x = x + np.where(mine[..., None], 0.0, step)
-    else:
-        x = np.zeros(batch + (n,))
-        for i in range(count):
-            x = x + (gains[i] @ est.x[i][..., None])[..., 0]
+            x_remainder = x_remainder + np.where(mine[..., None], 0.0, step)
+        x = np.where(takes[..., None], x_remainder, x)
     P = np.zeros(batch + (n, n))
     for i in range(count):
         w = weights[..., i, None, None]
@@ -274,8 +286,12 @@ def _pair_single(est, kind, W):
     ``L_b^-1 H L_a = V S U^T``, ``T = L_a U`` gives ``P(w) = T diag(d) T^T`` with
     ``d_k = 1 / (mu_k + w (1 - mu_k))``, ``mu_k = s_k^2`` (0 beyond the rank), so the
     criterion is a sum of scalar terms (eq. (H7)); Newton's method in Python floats, the
-    certified gap of :func:`cifilter._numerics.optimize.interval_gap`. Gains (eq. (H8)):
-    ``K_b = (1 - w) T diag(d) S^T V^T L_b^-1``, ``K_a = I - K_b H``. Returns None where the
+    certified gap of :func:`cifilter._numerics.optimize.interval_gap`. The directions
+    beyond the rank share ``d_k = 1 / w`` and enter the criterion as one term (weight
+    ``sum_k c_k`` for a trace, their count for the determinant). Gains (eq. (H8)):
+    ``K_b = (1 - w) T diag(d) S^T V^T L_b^-1``, ``K_a = I - K_b H``, and ``P`` is the bound
+    of these gains (eq. (H4)), checked finite and positive definite here (the conditioning
+    contract; a failure goes the long way, whose check raises). Returns None where the
     diagonalisation is not trusted (spread of the nonzero ``mu`` or of the factors'
     diagonals above 1e6, as for full states); the simplex path decides there.
     """
@@ -287,71 +303,118 @@ def _pair_single(est, kind, W):
     n = est.dim
     La, Lb, H = est.L[a], est.L[b], est.H[b]
     Lb_inv = lower_inverse_single(Lb)
-    G = Lb_inv @ H @ La
-    V, s, Ut, failed = lapack.dgesdd(G, compute_uv=1, full_matrices=1)
+    V, s, Ut, failed = lapack.dgesdd(Lb_inv @ H @ La, compute_uv=1, full_matrices=1)
     if failed:
         return None
-    r = s.size
-    nonzero = sorted(float(v) ** 2 for v in s)
-    if not single_diagonalisation_trusted(nonzero, (La, Lb)):
+    singular = s.tolist()  # descending
+    r = len(singular)
+    mu = [v * v for v in singular]
+    if not single_diagonalisation_trusted(mu[::-1], (La, Lb)):
         return None
-    U = Ut.T
-    mu = [float(v) ** 2 for v in s] + [0.0] * (n - r)
-    T = La @ U
+    T = La @ Ut.T
     if kind == "det":
-        c = None
-        scale = float(n)
+        coefficients = [1.0] * r
+        rest = float(n - r)
     else:
-        c = (np.square(T).sum(axis=0) if kind == "trace"
-             else np.einsum("ik,ij,jk->k", T, W, T)).tolist()
-        scale = sum(c)
-    one_minus = [1.0 - m for m in mu]
+        columns = (np.square(T) if kind == "trace" else (W @ T) * T).sum(axis=0).tolist()
+        coefficients = columns[:r]
+        rest = sum(columns[r:])
+    # (mu_k, 1 - mu_k, c_k) per term, the directions beyond the rank as one (mu = 0)
+    terms = [(m, 1.0 - m, ck) for m, ck in zip(mu, coefficients)]
+    if r < n:
+        terms.append((0.0, 1.0, rest))
+    scale = float(n) if kind == "det" else sum(coefficients) + rest
+    determinant = kind == "det"
 
-    def derivative(w):
+    def derivative(w):  # of the criterion (log det for "det") in w
         slope = curvature = 0.0
-        for k in range(n):
-            den = mu[k] + w * one_minus[k]
+        for m, one_minus, ck in terms:
+            den = m + w * one_minus
             if den <= 0.0:
-                return -np.inf, np.inf
-            d = 1.0 / den
-            if c is None:
-                slope -= one_minus[k] * d
-                curvature += (one_minus[k] * d) ** 2
-            else:
-                term = c[k] * one_minus[k] * d * d
-                slope -= term
-                curvature += 2.0 * term * one_minus[k] * d
+                return -math.inf, math.inf
+            ad = one_minus / den
+            term = ck * ad if determinant else ck * ad / den
+            slope -= term
+            curvature += term * ad if determinant else 2.0 * term * ad
         return slope, curvature
 
     w, iterations, _ = minimize_convex_scalar(derivative, scale=scale)
     slope, _ = derivative(w)
     gap = interval_gap(w, slope)
-    d = [1.0 / (mu[k] + w * one_minus[k]) if mu[k] + w * one_minus[k] > 0.0 else np.inf
-         for k in range(n)]
-    if c is not None:
-        gap /= sum(ck * dk for ck, dk in zip(c, d))
-    if not np.isfinite(gap) or not all(np.isfinite(d)):
+    d = []
+    for m, one_minus, _ in terms:
+        den = m + w * one_minus
+        if not den > 0.0 or not math.isfinite(1.0 / den):
+            return None
+        d.append(1.0 / den)
+    if not determinant:
+        gap /= sum(ck * dk for (_, _, ck), dk in zip(terms, d))
+    if not math.isfinite(gap):
         return None
     m = H.shape[0]
     if w == 1.0:
         Kb = np.zeros((n, m))
     else:
-        scaled = T[:, :r] * (np.array(d[:r]) * s)
-        Kb = (1.0 - w) * (scaled @ V[:, :r].T @ Lb_inv)
-    Ka = np.zeros((n, n)) if w == 0.0 else np.eye(n) - Kb @ H
-    P = np.zeros((n, n))
-    for K, L, weight in ((Ka, La, w), (Kb, Lb, 1.0 - w)):
-        if weight > 0.0:
-            M = K @ L
-            P += (M @ M.T) / weight
-    x = Kb @ est.x[b] if w == 0.0 else est.x[a] + Kb @ (est.x[b] - H @ est.x[a])
-    weights = np.empty(2)
-    weights[a], weights[b] = w, 1.0 - w
-    gains = [None, None]
-    gains[a], gains[b] = Ka, Kb
+        scaled = T[:, :r] * np.array([(1.0 - w) * dk * sk for dk, sk in zip(d, singular)])
+        Kb = scaled @ (V.T if r == m else V[:, :r].T) @ Lb_inv
+    # (M @ M.T is exactly symmetric (numpy's syrk), and so is P: no symmetrisation)
+    if w == 0.0:
+        Ka = np.zeros((n, n))
+        M = Kb @ Lb
+        P = M @ M.T
+        x = Kb @ est.x[b]
+    else:
+        Ka = np.subtract(_identity(n), Kb @ H)
+        M = Ka @ La
+        P = M @ M.T
+        if w < 1.0:
+            M = Kb @ Lb
+            P /= w
+            P += (M @ M.T) / (1.0 - w)
+        x = est.x[a] + Kb @ (est.x[b] - H @ est.x[a])
+    report = _pair_report(P, kind, W)
+    if report is None:
+        return None
+    weights = np.array((w, 1.0 - w) if a == 0 else (1.0 - w, w))
+    gains = (Ka, Kb) if a == 0 else (Kb, Ka)
     info = {"iterations": np.array(iterations), "converged": np.array(gap <= GAP_TOL),
             "gap": np.array(gap), "solver": "diagonalise"}
-    return weights, info, (x, 0.5 * (P + P.T), tuple(gains))
+    info.update(report)
+    return weights, info, (x, P, gains)
+
+
+def _identity(n):
+    """The n x n identity, read-only, made once per n."""
+    eye = _IDENTITIES.get(n)
+    if eye is None:
+        eye = np.eye(n)
+        eye.setflags(write=False)
+        _IDENTITIES[n] = eye
+    return eye
+
+
+_IDENTITIES: dict = {}
+
+
+def _pair_report(P, kind, W):
+    """:func:`cifilter._numerics.criteria.criterion_report` of one fused ``P`` whose
+    Cholesky factor passes the same test (finite, diagonal spread below ``1 / (n eps)``),
+    from that factor; None otherwise (then the long way's report raises its error)."""
+    L, failed = lapack.dpotrf(P, lower=1, clean=0)
+    if failed:
+        return None
+    diagonal = L.diagonal()
+    d = [abs(v) for v in diagonal.tolist()]
+    if not (all(math.isfinite(v) for v in d)
+            and max(d) ** 2 < min(d) ** 2 / (P.shape[0] * _EPS)):
+        return None
+    if kind == "det":
+        log_det = 2.0 * np.log(diagonal).sum()
+        with np.errstate(over="ignore", under="ignore"):
+            return {"value": np.exp(log_det), "log_value": log_det}
+    if kind == "trace":
+        return {"value": P.trace()}
+    return {"value": criterion_value(P, kind, W)}
 
 
 def _fast_partial_weights(est, roots):
@@ -402,8 +465,10 @@ def generalised_ci(est: Any, kind: str, W: Optional[np.ndarray], omega: Any = No
         single = _pair_single(est, kind, W)  # (a full-state estimate: observable)
         if single is not None:
             weights, solver_info, (x, P, gains) = single
-            info.update(rule="optimal", **solver_info)
-            return _result(est, "ci", x, P, gains, weights, weights, info, kind, W)
+            info.update(rule="optimal", **solver_info)  # (its report: P checked)
+            info["gains"] = gains
+            return FusionResult(restore_style(x, est.column), P, "ci", weights, None, info,
+                                weights=weights)
     roots = square_roots(est)
     check_observable(est, roots)
     if omega is None:

@@ -3,12 +3,17 @@
 import copy
 import inspect
 import pickle
+import re
 
 import filterpy
 import filterpy.kalman as fk
 import numpy as np
 import pytest
 from filterpy.common import Saver
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from strategies import ill_conditioned_spd
 
 import cifilter
 from cifilter import FusionMixin, KalmanFilter
@@ -361,3 +366,92 @@ def test_fuse_does_not_modify_read_only_or_integer_inputs():
     assert x.dtype.kind == "i" and P.dtype.kind == "i"
     np.testing.assert_array_equal(P, [[4, 0], [0, 1]])
     np.testing.assert_allclose(kf.x[:, 0], [0.2, 0.8])
+
+
+# ------------------------------------------- the single fusion's validation, its fast path
+def _general_path(xs, Ps):
+    """The validation's general path (the numbers as nested lists, which the fast path
+    never takes): its estimates, or the exception it raises."""
+    from cifilter._numerics.validation import as_estimates
+
+    try:
+        return as_estimates([x.tolist() for x in xs], [P.tolist() for P in Ps],
+                            names=("x", "P"), labels=("this filter", "other"))
+    except (TypeError, ValueError) as exc:
+        return exc
+
+
+def _assert_single_validation_is_the_general_paths(xs, Ps, fuse=True):
+    """A filter's single fusion (unbatched float64 arrays: the fast path) validates like
+    the general path: the same means and symmetrised covariances bit for bit, and each
+    factor LAPACK's dpotrf of that covariance (the single problem's factorisation); a
+    covariance the general path refuses is refused by kf.fuse with the same message."""
+    from scipy.linalg import lapack
+
+    from cifilter._numerics.validation import as_estimates
+
+    xs = [x.reshape(-1, 1) for x in xs]  # (kf.fuse gives the other the filter's style)
+    general = _general_path(xs, Ps)
+    kf = make_kf(Ps[0])
+    kf.x = xs[0]
+    if isinstance(general, Exception):
+        before = bit_snapshot(kf)
+        with pytest.raises(type(general), match="^" + re.escape(str(general)) + "$"):
+            kf.fuse((xs[1], Ps[1]))
+        assert_bit_identical(kf, before)
+        return
+    fast = as_estimates(xs, Ps, names=("x", "P"), labels=("this filter", "other"))
+    assert fast.column and fast.x.tobytes() == general.x.tobytes()
+    assert fast.P.tobytes() == general.P.tobytes()
+    for P, L in zip(general.P, fast.L):
+        assert L.tobytes() == lapack.dpotrf(P, lower=1, clean=1)[0].tobytes()
+    if fuse:  # (not beyond the scales of the conditioning contract: the rule's arithmetic)
+        kf.fuse((xs[1], Ps[1]))
+        assert np.isfinite(kf.P).all()
+
+
+@settings(deadline=None)
+@given(data=st.data(), n=st.integers(1, 6),
+       asymmetry=st.sampled_from([0.0, 1e-15, 1e-12, 1e-9, 1e-7, 1e-3]))
+def test_single_fusion_validation_is_the_general_paths(data, n, asymmetry):
+    """Condition numbers to 1e12, scales 1e-12..1e12, the other covariance symmetric,
+    asymmetric within the tolerance (symmetrised) or beyond it (refused alike)."""
+    Ps = [data.draw(ill_conditioned_spd(n)) for _ in range(2)]
+    xs = [data.draw(arrays(float, (n,), elements=st.floats(-1e3, 1e3))) for _ in range(2)]
+    if n > 1:
+        Ps[1] = Ps[1].copy()
+        Ps[1][0, n - 1] += asymmetry * np.abs(np.diagonal(Ps[1])).max()
+    _assert_single_validation_is_the_general_paths(xs, Ps)
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # (the general path's overflows)
+@pytest.mark.parametrize("scale", [2.0**1021, 2.0**1022, 1.5 * 2.0**1022, 2.0**1023])
+@pytest.mark.parametrize("asymmetric", [False, True])
+def test_single_fusion_validation_at_the_largest_scales(scale, asymmetric):
+    """Entries near the largest float, where a symmetrised copy may overflow."""
+    from cifilter._numerics.validation import _usual_estimates
+
+    P = np.array([[2.0, 0.5, 0.1], [0.5, 1.0, 0.2], [0.1, 0.2, 0.5]]) * (scale / 2.0)
+    other = P.copy()
+    if asymmetric:
+        other[0, 2] *= 1.0 + 1e-12
+    _assert_single_validation_is_the_general_paths([np.zeros(3), np.ones(3)], [P, other],
+                                                   fuse=False)
+    # the single problem's own factorisation (LAPACK per matrix) for every entry below
+    # 2**1023, where neither P - P^T nor P + P^T overflows; the general path beyond
+    fast = _usual_estimates([np.zeros(3), np.ones(3)], [P, other])
+    assert (fast is not None) == (scale < 2.0**1023)
+
+
+@pytest.mark.parametrize("where", ["x", "P off", "P diagonal"])
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_single_fusion_validation_of_non_finite_values(where, value):
+    P, x = np.array([[2.0, 0.5], [0.5, 1.0]]), np.zeros(2)
+    if where == "x":
+        x = np.array([0.0, value])
+    else:
+        P = P.copy()
+        P[(0, 1) if where == "P off" else (1, 1)] = value
+        if where == "P off":
+            P[1, 0] = value
+    _assert_single_validation_is_the_general_paths([np.ones(2), x], [np.eye(2), P])
