@@ -28,8 +28,9 @@ ALLOWED = {
     "horizon": {"rules", "registry", "result", "_numerics"},
     "network": {"registry", "result", "metrics", "_numerics"},
     "stonesoup": {"registry", "result", "_numerics"},
-    "cli": {"rules", "filters", "horizon", "network", "registry", "result", "backend",
-            "metrics", "montecarlo", "_numerics"},
+    "tracking": {"registry", "result", "metrics", "network", "_numerics"},
+    "cli": {"rules", "filters", "horizon", "network", "tracking", "registry", "result",
+            "backend", "metrics", "montecarlo", "_numerics"},
     "__init__": {"rules", "filters", "horizon", "registry", "result", "backend", "_numerics"},
     "__main__": {"cli"},
 }
@@ -94,8 +95,16 @@ def test_the_floor_plan_has_no_cycle():
 
 
 def test_the_rules_never_see_the_upper_floors():
-    for upper in ("filters", "cli", "network", "stonesoup", "horizon", "montecarlo"):
+    for upper in ("filters", "cli", "network", "stonesoup", "horizon", "montecarlo",
+                  "tracking"):
         assert upper not in ALLOWED["rules"]
+
+
+def test_the_network_only_generates_data_for_the_tracking_node():
+    """The fusion node sits above the network (whose scenarios feed it), never below."""
+    assert "tracking" not in ALLOWED["network"]
+    assert "network" in ALLOWED["tracking"]
+    assert "rules" not in ALLOWED["tracking"]  # the node fuses through the front door
 
 
 def test_at_most_ten_modules_directly_under_the_package():

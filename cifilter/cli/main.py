@@ -66,6 +66,22 @@ def _demo(args):
     network = dict(nodes=args.nodes, sequential=args.fusion == "sequential",
                    feedback=not args.no_feedback, period=args.period, loss=args.loss,
                    delay=args.delay)
+    if args.scenario == "multi-target":
+        changed = [f"--{name.replace('_', '-')}" for name, value in
+                   (("nodes", args.nodes), ("fusion", args.fusion != "sequential"),
+                    ("no_feedback", args.no_feedback), ("period", args.period != 1),
+                    ("loss", args.loss), ("delay", args.delay), ("workers", args.workers),
+                    ("scheduler", args.scheduler)) if value]
+        if changed:
+            verb = "applies" if len(changed) == 1 else "apply"
+            _usage_error("demo", f"{', '.join(changed)} {verb} to the network scenarios, "
+                         "not to --scenario multi-target")
+        if args.steps is not None and args.steps < 8:
+            _usage_error("demo", f"--steps: the multi-target scenario needs at least 8 "
+                         f"scans, got {args.steps}")
+        rows = run_demo(seed=args.seed, runs=args.runs, steps=args.steps,
+                        methods=args.methods, plot=args.plot, scenario="multi-target")
+        return 0 if all("error" not in row for row in rows) or args.methods is None else 1
     if args.scenario == "two-tracks":
         changed = [f"--{name.replace('_', '-')}" for name, value in
                    (("nodes", args.nodes), ("fusion", args.fusion != "sequential"),
@@ -221,9 +237,10 @@ def _build_parser():
                     "its neighbours' estimates and feeds the result back; every registered "
                     "rule is scored (RMSE, ANEES with chi-square bounds, verdict). "
                     "--scenario two-tracks runs the earlier two-track demo (no feedback).")
-    demo.add_argument("--scenario", choices=scenario_names(), default="naveen-taylor",
-                      help="network (default naveen-taylor: Naveen & Taylor's six nodes) "
-                           "or two-tracks")
+    demo.add_argument("--scenario", choices=(*scenario_names(), "multi-target"),
+                      default="naveen-taylor",
+                      help="network (default naveen-taylor: Naveen & Taylor's six nodes), "
+                           "two-tracks, or multi-target (a track-to-track fusion centre)")
     demo.add_argument("--nodes", type=types.positive_int, metavar="N",
                       help="number of nodes of a ring, chain or fully-connected network")
     demo.add_argument("--seed", type=types.seed, default=0, help="random seed (default 0)")

@@ -12,7 +12,7 @@ if TYPE_CHECKING:  # matplotlib is optional (the plot extra) and imported lazily
     from matplotlib.axes import Axes
     from matplotlib.lines import Line2D
 
-__all__ = ["covariance_ellipse", "plot_covariance_ellipse"]
+__all__ = ["covariance_ellipse", "plot_central_tracks", "plot_covariance_ellipse"]
 
 
 def covariance_ellipse(P: ArrayLike, mean: ArrayLike = (0.0, 0.0),
@@ -107,3 +107,70 @@ def plot_covariance_ellipse(ax: "Axes", P: ArrayLike, mean: ArrayLike = (0.0, 0.
     if equal_aspect:
         ax.set_aspect("equal")
     return ax.plot(points[0], points[1], **line_kwargs)
+
+
+def plot_central_tracks(ax: "Axes", truth: ArrayLike, scans: Any, *,
+                        position: tuple[int, int] = (0, 2), confirmed_only: bool = True,
+                        ellipses: bool = True) -> dict[int, Any]:
+    """Draw true paths and a fusion node's central tracks (one colour per central ID).
+
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes
+        Where to draw (given an equal aspect).
+    truth : array_like, shape (steps, targets, n)
+        True states, NaN where a target is not alive (drawn as grey lines).
+    scans : sequence of sequence of CentralTrack
+        Per scan, the central tracks (objects with ``id``, ``x``, ``P``, ``confirmed``).
+    position : tuple of int, optional
+        Indices of x and y in the state (default (0, 2)).
+    confirmed_only : bool, optional
+        Draw only confirmed tracks (default True).
+    ellipses : bool, optional
+        Draw each track's 95% position ellipse at its last scan (default True).
+
+    Returns
+    -------
+    dict
+        ``{central id: Line2D}`` of the drawn tracks.
+
+    Examples
+    --------
+    >>> import matplotlib
+    >>> matplotlib.use("Agg")
+    >>> import matplotlib.pyplot as plt
+    >>> import numpy as np
+    >>> from types import SimpleNamespace
+    >>> from cifilter.cli.plotting import plot_central_tracks
+    >>> truth = np.zeros((2, 1, 4))
+    >>> scans = [[SimpleNamespace(id=1, x=np.zeros(4), P=np.eye(4), confirmed=True)]] * 2
+    >>> fig, ax = plt.subplots()
+    >>> sorted(plot_central_tracks(ax, truth, scans))
+    [1]
+    >>> plt.close(fig)
+    """
+    truth = np.asarray(truth, dtype=float)
+    i, j = position
+    for target in range(truth.shape[1]):
+        ax.plot(truth[:, target, i], truth[:, target, j], color="0.6", lw=2.5, alpha=0.6,
+                zorder=1)
+    paths: dict[int, list[Any]] = {}
+    last: dict[int, Any] = {}
+    for scan in scans:
+        for track in scan:
+            if confirmed_only and not track.confirmed:
+                continue
+            paths.setdefault(track.id, []).append(np.asarray(track.x)[[i, j]])
+            last[track.id] = track
+    lines = {}
+    for track_id, points in paths.items():
+        xy = np.array(points)
+        (line,) = ax.plot(xy[:, 0], xy[:, 1], ".-", ms=3, lw=0.8, zorder=2)
+        lines[track_id] = line
+        if ellipses:
+            P = np.asarray(last[track_id].P)[np.ix_([i, j], [i, j])]
+            plot_covariance_ellipse(ax, P, xy[-1], color=line.get_color(), lw=0.8)
+        ax.annotate(str(track_id), xy[-1], fontsize=7, color=line.get_color(),
+                    xytext=(3, 3), textcoords="offset points")
+    ax.set_aspect("equal")
+    return lines

@@ -18,7 +18,12 @@ estimates, feeding the result back into their filters.
   scored with :mod:`cifilter.metrics` by :func:`summarize` (the columns of ``python -m
   cifilter demo``: position and velocity RMSE, the pooled ANEES and its band, the traces
   of ``P``'s position and velocity blocks) and printed by :func:`format_summary`;
-  :func:`score_track` gives the same columns for estimates from elsewhere.
+  :func:`score_track` gives the same columns for estimates from elsewhere;
+* :mod:`cifilter.network.targets`: many targets seen by several sensors that run their own
+  local trackers (:func:`multi_target`, :func:`simulate_targets`): the source tracks a
+  track-to-track fusion centre (:mod:`cifilter.tracking`) receives, with crossing targets,
+  targets that appear and disappear, missed detections, short-lived false tracks, late
+  reports and sensors that send part of the state.
 """
 
 from .graph import (
@@ -37,6 +42,7 @@ from .graph import (
 )
 from .simulate import NetworkData, NetworkTrack, centralised, run_network, simulate_data
 from .study import REFERENCES, NetworkStudy, compare, format_summary, score_track, summarize
+from .targets import TargetData, TargetScenario, TrackingSensor, multi_target, simulate_targets
 
 __all__ = [
     "NAVEEN_TAYLOR_EDGES",
@@ -45,6 +51,9 @@ __all__ = [
     "NetworkStudy",
     "NetworkTrack",
     "Scenario",
+    "TargetData",
+    "TargetScenario",
+    "TrackingSensor",
     "adjacency_matrix",
     "centralised",
     "chain",
@@ -54,12 +63,14 @@ __all__ = [
     "format_summary",
     "fully_connected",
     "get_scenario",
+    "multi_target",
     "naveen_taylor",
     "ring",
     "run_network",
     "scenario_names",
     "score_track",
     "simulate_data",
+    "simulate_targets",
     "summarize",
     "two_tracks",
 ]
