@@ -363,3 +363,20 @@ def assert_unbiased(gains, tol=None):
     tol = 64.0 * n * EPS * scale if tol is None else tol
     residual = np.abs(gains.sum(axis=-3) - np.eye(n)).max()
     assert residual <= tol * max(1.0, np.abs(gains).max()), f"sum of gains - I = {residual:.3g}"
+
+
+def padded(gains, Ps):
+    """Gains (n x m_i) and covariances (m_i x m_i) padded to (n x M), (M x M): the padding
+    columns of the gains are zero, so ``K P K^T`` is unchanged (estimates of parts
+    ``H_i x`` of the state for :func:`assert_bound_holds`)."""
+    M = max(P.shape[0] for P in Ps)
+    K_pad, P_pad = [], []
+    for K, P in zip(gains, Ps):
+        m = P.shape[0]
+        k = np.zeros((K.shape[0], M))
+        k[:, :m] = K
+        p = np.eye(M)
+        p[:m, :m] = P
+        K_pad.append(k)
+        P_pad.append(p)
+    return np.array(K_pad), np.array(P_pad)

@@ -146,6 +146,28 @@ def _rows(est, x, P, L, index):
     return Estimates(x[index], P[index], L[index], est.column)
 
 
+def _solve_handed_back(est, x, P, L, status, numpy_path, sub_W, kind, outputs):
+    """Solve the items a kernel handed back (``status != 0``) on the numpy path and write
+    them into the kernel's ``outputs`` (weights, iterations, gap, floor, converged, x, P,
+    gains, value, log_value), in place."""
+    index = np.flatnonzero(status)
+    _calls["handed_back"] += int(index.size)
+    if not index.size:
+        return
+    (weights, iterations, gap, floor, converged, x_out, P_out, gains, value,
+     log_value) = outputs
+    sub = _rows(est, x, P, L, index)
+    w_s, info_s, (x_s, P_s, K_s) = numpy_path(sub, sub_W(index))
+    report_s = criterion_report(P_s, kind, sub_W(index))
+    weights[index], iterations[index] = w_s, info_s["iterations"]
+    gap[index], floor[index] = info_s["gap"], info_s["gap_floor"]
+    converged[index] = info_s["converged"]
+    x_out[index], P_out[index], gains[index] = x_s, P_s, K_s
+    value[index] = report_s["value"]
+    if kind == "det":
+        log_value[index] = report_s["log_value"]
+
+
 def _report(kind, value, log_value, shape):
     report = {"value": value.reshape(shape)}
     if kind == "det":
@@ -176,19 +198,9 @@ def optimal_pair(est, kind, W, numpy_path):
                                          log_value, status)
     weights = np.stack([omega, 1.0 - omega], axis=-1)
     converged = gap_converged(gap, floor, computed)
-    index = np.flatnonzero(status)
-    _calls["handed_back"] += int(index.size)
-    if index.size:
-        sub = _rows(est, x, P, L, index)
-        w_s, info_s, (x_s, P_s, K_s) = numpy_path(sub, sub_W(index))
-        report_s = criterion_report(P_s, kind, sub_W(index))
-        weights[index], iterations[index] = w_s, info_s["iterations"]
-        gap[index], floor[index] = info_s["gap"], info_s["gap_floor"]
-        converged[index] = info_s["converged"]
-        x_out[index], P_out[index], gains[index] = x_s, P_s, K_s
-        value[index] = report_s["value"]
-        if kind == "det":
-            log_value[index] = report_s["log_value"]
+    _solve_handed_back(est, x, P, L, status, numpy_path, sub_W, kind,
+                       (weights, iterations, gap, floor, converged, x_out, P_out, gains,
+                        value, log_value))
     info = {"iterations": iterations.reshape(shape), "converged": converged.reshape(shape),
             "gap": gap.reshape(shape), "gap_floor": floor.reshape(shape),
             "solver": "diagonalise"}
@@ -234,19 +246,9 @@ def optimal_many(est, kind, W, numpy_path):
                                          floor, computed, x_out, P_out, gains, value,
                                          log_value, status, references)
     converged = gap_converged(gap, floor, computed)
-    index = np.flatnonzero(status)
-    _calls["handed_back"] += int(index.size)
-    if index.size:
-        sub = _rows(est, x, P, L, index)
-        w_s, info_s, (x_s, P_s, K_s) = numpy_path(sub, sub_W(index))
-        report_s = criterion_report(P_s, kind, sub_W(index))
-        weights[index], iterations[index] = w_s, info_s["iterations"]
-        gap[index], floor[index] = info_s["gap"], info_s["gap_floor"]
-        converged[index] = info_s["converged"]
-        x_out[index], P_out[index], gains[index] = x_s, P_s, K_s
-        value[index] = report_s["value"]
-        if kind == "det":
-            log_value[index] = report_s["log_value"]
+    _solve_handed_back(est, x, P, L, status, numpy_path, sub_W, kind,
+                       (weights, iterations, gap, floor, converged, x_out, P_out, gains,
+                        value, log_value))
     info = {"iterations": iterations.reshape(shape), "converged": converged.reshape(shape),
             "gap": gap.reshape(shape), "gap_floor": floor.reshape(shape), "solver": "simplex"}
     result = (x_out.reshape(shape + (n,)), P_out.reshape(shape + (n, n)),

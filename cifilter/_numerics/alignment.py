@@ -49,6 +49,7 @@ __all__ = [
     "back_noise",
     "check_observation_matrices",
     "check_times",
+    "finite_real",
     "motion_matrices",
     "predicted",
     "residuals_to_reference",
@@ -289,12 +290,14 @@ def check_times(times: Any, count: int, at: Any = None) -> tuple:
         raise ValueError(f"times has {len(times)} entries but there are {count} estimates")
     out = []
     for i, t in enumerate(times):
-        out.append(_finite_real(t, f"times[{i}]"))
-    at = max(out) if at is None else _finite_real(at, "at")
+        out.append(finite_real(t, f"times[{i}]"))
+    at = max(out) if at is None else finite_real(at, "at")
     return tuple(out), at
 
 
-def _finite_real(value, name):
+def finite_real(value: Any, name: str) -> float:
+    """``value`` as a finite float, or a TypeError (not a real number) / ValueError (not
+    finite) naming it as ``name``."""
     if type(value) is float or type(value) is int:  # the common case, without the ABC test
         value = float(value)
         if math.isfinite(value):

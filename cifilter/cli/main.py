@@ -66,16 +66,9 @@ def _demo(args):
     network = dict(nodes=args.nodes, sequential=args.fusion == "sequential",
                    feedback=not args.no_feedback, period=args.period, loss=args.loss,
                    delay=args.delay)
+    if args.scenario in ("multi-target", "two-tracks"):
+        _refuse_network_options(args)
     if args.scenario == "multi-target":
-        changed = [f"--{name.replace('_', '-')}" for name, value in
-                   (("nodes", args.nodes), ("fusion", args.fusion != "sequential"),
-                    ("no_feedback", args.no_feedback), ("period", args.period != 1),
-                    ("loss", args.loss), ("delay", args.delay), ("workers", args.workers),
-                    ("scheduler", args.scheduler)) if value]
-        if changed:
-            verb = "applies" if len(changed) == 1 else "apply"
-            _usage_error("demo", f"{', '.join(changed)} {verb} to the network scenarios, "
-                         "not to --scenario multi-target")
         if args.steps is not None and args.steps < 8:
             _usage_error("demo", f"--steps: the multi-target scenario needs at least 8 "
                          f"scans, got {args.steps}")
@@ -83,15 +76,6 @@ def _demo(args):
                         methods=args.methods, plot=args.plot, scenario="multi-target")
         return 0 if all("error" not in row for row in rows) or args.methods is None else 1
     if args.scenario == "two-tracks":
-        changed = [f"--{name.replace('_', '-')}" for name, value in
-                   (("nodes", args.nodes), ("fusion", args.fusion != "sequential"),
-                    ("no_feedback", args.no_feedback), ("period", args.period != 1),
-                    ("loss", args.loss), ("delay", args.delay), ("workers", args.workers),
-                    ("scheduler", args.scheduler)) if value]
-        if changed:
-            verb = "applies" if len(changed) == 1 else "apply"
-            _usage_error("demo", f"{', '.join(changed)} {verb} to the network scenarios, "
-                         "not to --scenario two-tracks")
         rows = run_demo(seed=args.seed, runs=args.runs, steps=args.steps,
                         methods=args.methods, plot=args.plot, scenario="two-tracks")
     else:
@@ -111,6 +95,20 @@ def _demo(args):
                             methods=args.methods, plot=args.plot, scenario=scenario,
                             client=client, **network)
     return 0 if all("error" not in row for row in rows) or args.methods is None else 1
+
+
+def _refuse_network_options(args):
+    """A one-line usage error for the options of the network scenarios given to a scenario
+    without a network (two-tracks, multi-target)."""
+    changed = [f"--{name.replace('_', '-')}" for name, value in
+               (("nodes", args.nodes), ("fusion", args.fusion != "sequential"),
+                ("no_feedback", args.no_feedback), ("period", args.period != 1),
+                ("loss", args.loss), ("delay", args.delay), ("workers", args.workers),
+                ("scheduler", args.scheduler)) if value]
+    if changed:
+        verb = "applies" if len(changed) == 1 else "apply"
+        _usage_error("demo", f"{', '.join(changed)} {verb} to the network scenarios, "
+                     f"not to --scenario {args.scenario}")
 
 
 def _scenario(args, nodes):

@@ -7,8 +7,6 @@ the node's own track, the result of :meth:`cifilter.tracking.TrackFuser.update`.
 :func:`checked_tracks` validates one scan of source tracks before the node uses them.
 """
 
-import math
-import numbers
 from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Optional
@@ -16,6 +14,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._numerics.alignment import finite_real
 from .._numerics.linalg import cholesky
 from .._numerics.validation import SYMMETRY_RTOL, as_float_array
 
@@ -162,21 +161,10 @@ def scan_time(time: Any, last: Optional[float]) -> float:
     >>> scan_time(2, 1.0)
     2.0
     """
-    value = _real(time, "the scan time")
+    value = finite_real(time, "the scan time")
     if last is not None and value < last:
         raise ValueError(f"the scan time {value:g} is earlier than the fuser's time {last:g} "
                          "(scans must come in time order)")
-    return value
-
-
-def _real(value, name):
-    if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
-        value = value[()]
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value}")
     return value
 
 
@@ -267,7 +255,7 @@ def _explain_size(label, m, H, n):
 
 
 def _checked_one(track, label, time, n):
-    t = _real(track.time, f"{label}'s time")
+    t = finite_real(track.time, f"{label}'s time")
     if t > time:
         raise ValueError(f"{label} is at time {t:g}, later than the scan time {time:g}")
     x = as_float_array(track.x, f"{label}'s x")

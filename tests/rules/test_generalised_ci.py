@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize, minimize_scalar
 from strategies import ill_conditioned_spd, spd_matrices
-from worst_case import assert_bound_holds
+from worst_case import assert_bound_holds, padded
 
 import cifilter
 from cifilter import available_methods, fuse, get_method, split_covariance_intersection
@@ -49,22 +49,6 @@ def reference_weight(Ps, Hs, kind):
                             bounds=(1e-6, 1 - 1e-12), method="bounded",
                             options={"xatol": 1e-12})
     return found.x
-
-
-def padded(gains, Ps):
-    """Gains (n x m_i) and covariances (m_i x m_i) padded to (n x M), (M x M): the padding
-    columns of the gains are zero, so ``K P K^T`` is unchanged (for tests/worst_case.py)."""
-    M = max(P.shape[0] for P in Ps)
-    K_pad, P_pad = [], []
-    for K, P in zip(gains, Ps):
-        m = P.shape[0]
-        k = np.zeros((K.shape[0], M))
-        k[:, :m] = K
-        p = np.eye(M)
-        p[:m, :m] = P
-        K_pad.append(k)
-        P_pad.append(p)
-    return np.array(K_pad), np.array(P_pad)
 
 
 def full_H(H, n):

@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize, minimize_scalar
 from strategies import ill_conditioned_spd
-from worst_case import assert_bound_holds, worst_case_variance
+from worst_case import assert_bound_holds, padded, worst_case_variance
 
 import cifilter
 from cifilter import fuse, get_method, partial_ci
@@ -48,22 +48,6 @@ def direct_P(Ps, Hs, delta, rho):
     w = eq_24(delta, rho)
     J = sum(wi * H.T @ np.linalg.inv(P) @ H for wi, P, H in zip(w, Ps, Hs))
     return np.linalg.inv(J)
-
-
-def padded(gains, Ps):
-    """Gains (n x m_i) and covariances (m_i x m_i) padded to (n x M), (M x M): the padding
-    columns of the gains are zero, so ``K P K^T`` is unchanged (for tests/worst_case.py)."""
-    M = max(P.shape[0] for P in Ps)
-    K_pad, P_pad = [], []
-    for K, P in zip(gains, Ps):
-        m = P.shape[0]
-        k = np.zeros((K.shape[0], M))
-        k[:, :m] = K
-        p = np.eye(M)
-        p[:m, :m] = P
-        K_pad.append(k)
-        P_pad.append(p)
-    return np.array(K_pad), np.array(P_pad)
 
 
 def fused(Ps, Hs, rho, xs=None, **options):
