@@ -295,15 +295,16 @@ def _pair_single(est, kind, W):
     diagonalisation is not trusted (spread of the nonzero ``mu`` or of the factors'
     diagonals above 1e6, as for full states); the simplex path decides there.
     """
-    full = est.full
-    if est.count != 2 or len(full) != 1 or est.batch_shape:
-        return None
-    a = full[0]
+    Hs = est.H
+    if len(Hs) != 2 or est.x[0].ndim != 1 or (Hs[0] is None) == (Hs[1] is None):
+        return None  # (not two estimates of one problem, one of them of the full state)
+    a = 0 if Hs[0] is None else 1
     b = 1 - a
     n = est.dim
-    La, Lb, H = est.L[a], est.L[b], est.H[b]
+    La, Lb, H = est.L[a], est.L[b], Hs[b]
+    # (ndarray.dot, not @: the same BLAS calls, bitwise, with less overhead on small arrays)
     Lb_inv = lower_inverse_single(Lb)
-    V, s, Ut, failed = lapack.dgesdd(Lb_inv @ H @ La, compute_uv=1, full_matrices=1)
+    V, s, Ut, failed = lapack.dgesdd(Lb_inv.dot(H).dot(La), compute_uv=1, full_matrices=1)
     if failed:
         return None
     singular = s.tolist()  # descending
@@ -311,33 +312,21 @@ def _pair_single(est, kind, W):
     mu = [v * v for v in singular]
     if not single_diagonalisation_trusted(mu[::-1], (La, Lb)):
         return None
-    T = La @ Ut.T
-    if kind == "det":
+    T = La.dot(Ut.T)
+    determinant = kind == "det"
+    if determinant:
         coefficients = [1.0] * r
         rest = float(n - r)
     else:
-        columns = (np.square(T) if kind == "trace" else (W @ T) * T).sum(axis=0).tolist()
+        columns = (np.square(T) if kind == "trace" else W.dot(T) * T).sum(axis=0).tolist()
         coefficients = columns[:r]
         rest = sum(columns[r:])
     # (mu_k, 1 - mu_k, c_k) per term, the directions beyond the rank as one (mu = 0)
     terms = [(m, 1.0 - m, ck) for m, ck in zip(mu, coefficients)]
     if r < n:
         terms.append((0.0, 1.0, rest))
-    scale = float(n) if kind == "det" else sum(coefficients) + rest
-    determinant = kind == "det"
-
-    def derivative(w):  # of the criterion (log det for "det") in w
-        slope = curvature = 0.0
-        for m, one_minus, ck in terms:
-            den = m + w * one_minus
-            if den <= 0.0:
-                return -math.inf, math.inf
-            ad = one_minus / den
-            term = ck * ad if determinant else ck * ad / den
-            slope -= term
-            curvature += term * ad if determinant else 2.0 * term * ad
-        return slope, curvature
-
+    scale = float(n) if determinant else sum(coefficients) + rest
+    derivative = _log_det_derivative(terms) if determinant else _trace_derivative(terms)
     w, iterations, _ = minimize_convex_scalar(derivative, scale=scale)
     slope, _ = derivative(w)
     gap = interval_gap(w, slope)
@@ -356,22 +345,22 @@ def _pair_single(est, kind, W):
         Kb = np.zeros((n, m))
     else:
         scaled = T[:, :r] * np.array([(1.0 - w) * dk * sk for dk, sk in zip(d, singular)])
-        Kb = scaled @ (V.T if r == m else V[:, :r].T) @ Lb_inv
-    # (M @ M.T is exactly symmetric (numpy's syrk), and so is P: no symmetrisation)
+        Kb = scaled.dot(V.T if r == m else V[:, :r].T).dot(Lb_inv)
+    # (M M^T is exactly symmetric (numpy's syrk), and so is P: no symmetrisation)
     if w == 0.0:
         Ka = np.zeros((n, n))
-        M = Kb @ Lb
-        P = M @ M.T
-        x = Kb @ est.x[b]
+        M = Kb.dot(Lb)
+        P = M.dot(M.T)
+        x = Kb.dot(est.x[b])
     else:
-        Ka = np.subtract(_identity(n), Kb @ H)
-        M = Ka @ La
-        P = M @ M.T
+        Ka = np.subtract(_identity(n), Kb.dot(H))
+        M = Ka.dot(La)
+        P = M.dot(M.T)
         if w < 1.0:
-            M = Kb @ Lb
+            M = Kb.dot(Lb)
             P /= w
-            P += (M @ M.T) / (1.0 - w)
-        x = est.x[a] + Kb @ (est.x[b] - H @ est.x[a])
+            P += M.dot(M.T) / (1.0 - w)
+        x = est.x[a] + Kb.dot(est.x[b] - H.dot(est.x[a]))
     report = _pair_report(P, kind, W)
     if report is None:
         return None
@@ -381,6 +370,41 @@ def _pair_single(est, kind, W):
             "gap": np.array(gap), "solver": "diagonalise"}
     info.update(report)
     return weights, info, (x, P, gains)
+
+
+def _trace_derivative(terms):
+    """``(f', f'')`` of ``f(w) = sum_k c_k / (mu_k + w (1 - mu_k))`` (the trace, eq. (H7))
+    for ``terms`` of ``(mu_k, 1 - mu_k, c_k)``; ``(-inf, inf)`` where a denominator is not
+    positive."""
+    def derivative(w):
+        slope = curvature = 0.0
+        for m, one_minus, ck in terms:
+            den = m + w * one_minus
+            if den <= 0.0:
+                return -math.inf, math.inf
+            ad = one_minus / den
+            term = ck * ad / den
+            slope -= term
+            curvature += 2.0 * term * ad
+        return slope, curvature
+    return derivative
+
+
+def _log_det_derivative(terms):
+    """As :func:`_trace_derivative` for ``f(w) = -sum_k c_k log(mu_k + w (1 - mu_k))`` (log
+    det ``P``, with ``c_k`` the multiplicities)."""
+    def derivative(w):
+        slope = curvature = 0.0
+        for m, one_minus, ck in terms:
+            den = m + w * one_minus
+            if den <= 0.0:
+                return -math.inf, math.inf
+            ad = one_minus / den
+            term = ck * ad
+            slope -= term
+            curvature += term * ad
+        return slope, curvature
+    return derivative
 
 
 def _identity(n):
@@ -413,7 +437,9 @@ def _pair_report(P, kind, W):
         with np.errstate(over="ignore", under="ignore"):
             return {"value": np.exp(log_det), "log_value": log_det}
     if kind == "trace":
-        return {"value": P.trace()}
+        # (below 8 terms numpy's sum of the diagonal is this sequential one, bitwise)
+        return {"value": np.float64(sum(P.diagonal().tolist())) if len(d) < 8
+                else P.trace()}
     return {"value": criterion_value(P, kind, W)}
 
 

@@ -339,6 +339,25 @@ def test_pair_path_is_the_simplex_optimum_for_every_criterion(args, kind):
         assert float(r.info["value"]) <= float(rb.info["value"][0]) * (1 + 1e-8)
 
 
+def test_pair_path_hand_derived_trace_optimum():
+    """Hand-derived: P_a = I (2x2), P_b = diag(1/4, 4) of H = I. In the full state's
+    coordinates mu = (4, 1/4), c = (1, 1), so trace P(w) = 1/(4 - 3w) + 4/(1 + 3w) and
+    f'(w) = 0 at 4 - 3w = (1 + 3w)/2: w = 7/9, P = diag(3/5, 6/5), and the gains of eq. (H8)
+    K_b = (1 - w) P P_b^-1 = diag(8/15, 1/15), K_a = w P = I - K_b = diag(7/15, 14/15)."""
+    pair = [(np.zeros(2), np.eye(2)), (np.ones(2), np.diag([0.25, 4.0]))]
+    r = fuse(pair, H=[None, np.eye(2)], criterion="trace")
+    assert r.info["solver"] == "diagonalise" and r.info["converged"]
+    assert r.weights[0] == pytest.approx(7.0 / 9.0, abs=4 * EPS)
+    assert r.weights[1] == pytest.approx(2.0 / 9.0, abs=4 * EPS)
+    assert float(r.info["value"]) == pytest.approx(9.0 / 5.0, rel=8 * EPS)
+    np.testing.assert_allclose(r.P, np.diag([3.0 / 5.0, 6.0 / 5.0]), rtol=8 * EPS,
+                               atol=8 * EPS)
+    Ka, Kb = r.info["gains"]
+    np.testing.assert_allclose(Kb, np.diag([8.0 / 15.0, 1.0 / 15.0]), rtol=0, atol=8 * EPS)
+    np.testing.assert_allclose(Ka, np.diag([7.0 / 15.0, 14.0 / 15.0]), rtol=0, atol=8 * EPS)
+    np.testing.assert_allclose(r.x, [8.0 / 15.0, 1.0 / 15.0], rtol=0, atol=8 * EPS)
+
+
 def test_front_door_H_alone_equals_its_general_path():
     """fuse(..., H=) takes a path of its own (no other front-door option); with times= of
     one time (nothing moves) the general path gives the same result bit for bit."""
