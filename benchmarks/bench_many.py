@@ -38,12 +38,8 @@ import cifilter  # noqa: E402
 from cifilter._kernels import dispatch  # noqa: E402
 from cifilter.backend import compile_kernels, numba_available  # noqa: E402
 
-
-def make_sets(size, count, n, seed):
-    rng = np.random.default_rng(seed)
-    A = rng.standard_normal((size, count, n, n))
-    Ps = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(n)
-    return rng.standard_normal((size, count, n)), Ps
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_ci import make_sets  # noqa: E402  (the same random sets as bench_ci)
 
 
 def best_of(repeats, call):

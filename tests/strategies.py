@@ -163,6 +163,34 @@ def ill_conditioned_sets(draw, count, n, max_condition=MAX_CONDITION, common_sca
     return [draw(ill_conditioned_spd(n, max_condition)) for _ in range(count)]
 
 
+@st.composite
+def partial_state_problems(draw):
+    """Estimates of parts ``H_i x`` of a state: N = 2..4 estimates of a state of dimension
+    2..4, the first of the full state or not, the others of random H_i (1 <= m_i <= n + 1
+    rows), covariances of condition number up to 1e12 at one scale in 1e-12..1e12; the
+    estimates together observe the state. Returns ``(Hs, Ps, n)`` (None in Hs: the full
+    state)."""
+    n = draw(st.integers(2, 4))
+    count = draw(st.integers(2, 4))
+    log_scale = draw(st.floats(-12.0, 12.0))
+    scales = (10.0**log_scale, 10.0**log_scale)
+    g = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    Hs, Ps = [], []
+    first_full = draw(st.booleans())
+    for i in range(count):
+        if i == 0 and first_full:
+            Hs.append(None)
+            Ps.append(draw(ill_conditioned_spd(n, scales=scales)))
+            continue
+        m = draw(st.integers(1, n + 1))
+        Hs.append(g.standard_normal((m, n)))
+        Ps.append(draw(ill_conditioned_spd(m, scales=scales)))
+    if not first_full:  # make sure the state is observed: one more estimate of all of it
+        Hs.append(g.standard_normal((n, n)) + 3 * np.eye(n))
+        Ps.append(draw(ill_conditioned_spd(n, scales=scales)))
+    return Hs, Ps, n
+
+
 def means_of_their_scale(values, Pa, Pb):
     """Two means of the size of their standard deviations, from 10 unit values."""
     n = Pa.shape[0]

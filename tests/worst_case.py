@@ -380,3 +380,20 @@ def padded(gains, Ps):
         K_pad.append(k)
         P_pad.append(p)
     return np.array(K_pad), np.array(P_pad)
+
+
+def gain_bound_difference(P, gains, Ps, weights):
+    """The largest entry of ``P - sum_i K_i P_i K_i^T / w_i`` in 50-digit arithmetic from
+    the returned gains and the input covariances (the rule's bound of its gains, formed
+    independently of its factors). An estimate of weight 0 must have a zero gain and
+    contributes no term."""
+    n = P.shape[-1]
+    with mpmath.workdps(50):
+        exact = mpmath.zeros(n, n)
+        for K, P_i, w in zip(gains, Ps, weights):
+            if w == 0.0:  # an ignored estimate: zero gain, no term
+                assert not np.asarray(K).any()
+                continue
+            Km = mpmath.matrix(np.asarray(K).tolist())
+            exact += Km * mpmath.matrix(np.asarray(P_i).tolist()) * Km.T / mpmath.mpf(float(w))
+        return max(abs(float(P[i, j] - exact[i, j])) for i in range(n) for j in range(n))

@@ -192,7 +192,8 @@ def golden_section_minimum(f):
             lo, c, fc = c, d, fd
             d = lo + ratio * (hi - lo)
             fd = f(d)
-    return min([lo, hi, mp.mpf(0), mp.mpf(1)], key=f)
+    # (the bracket's ends and its two inner points: the best evaluated, bracket below 1e-29)
+    return min([lo, hi, c, d, mp.mpf(0), mp.mpf(1)], key=f)
 
 
 # Pairs drawn as tests/strategies.py's ill_conditioned_sets draws them (each covariance at
@@ -287,20 +288,7 @@ def exact_pair_excess(Pa, Pb, omega, kind):
         def f(w):
             return _ci_criterion(A, B, w, kind)
 
-        lo, hi = mp.mpf(0), mp.mpf(1)
-        ratio = (mp.sqrt(5) - 1) / 2
-        c, d = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
-        fc, fd = f(c), f(d)
-        for _ in range(140):  # bracket below 1e-29
-            if fc < fd:
-                hi, d, fd = d, c, fc
-                c = hi - ratio * (hi - lo)
-                fc = f(c)
-            else:
-                lo, c, fc = c, d, fd
-                d = lo + ratio * (hi - lo)
-                fd = f(d)
-        best = min(fc, fd, f(mp.mpf(0)), f(mp.mpf(1)))
+        best = f(golden_section_minimum(f))
         mine = f(mp.mpf(float(omega)))
         excess = mine - best
         return float(excess if kind == "det" else excess / mine)

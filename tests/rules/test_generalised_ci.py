@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import minimize, minimize_scalar
-from strategies import ill_conditioned_spd, spd_matrices
+from strategies import ill_conditioned_spd, partial_state_problems, spd_matrices
 from worst_case import assert_bound_holds, padded
 
 import cifilter
@@ -184,35 +184,8 @@ def assert_valid(P):
     np.linalg.cholesky(P)
 
 
-@st.composite
-def partial_problems(draw):
-    """N = 2..4 estimates of a state of dimension 2..4: the first of the full state or not,
-    the others of random H_i (1 <= m_i <= n + 1 rows), covariances of condition number up
-    to 1e12 at one scale in 1e-12..1e12."""
-    n = draw(st.integers(2, 4))
-    count = draw(st.integers(2, 4))
-    log_scale = draw(st.floats(-12.0, 12.0))
-    scales = (10.0**log_scale, 10.0**log_scale)
-    seed = draw(st.integers(0, 2**32 - 1))
-    g = np.random.default_rng(seed)
-    Hs, Ps = [], []
-    first_full = draw(st.booleans())
-    for i in range(count):
-        if i == 0 and first_full:
-            Hs.append(None)
-            Ps.append(draw(ill_conditioned_spd(n, scales=scales)))
-            continue
-        m = draw(st.integers(1, n + 1))
-        Hs.append(g.standard_normal((m, n)))
-        Ps.append(draw(ill_conditioned_spd(m, scales=scales)))
-    if not first_full:  # make sure the state is observed: one more estimate of all of it
-        Hs.append(g.standard_normal((n, n)) + 3 * np.eye(n))
-        Ps.append(draw(ill_conditioned_spd(n, scales=scales)))
-    return Hs, Ps, n
-
-
 @settings(max_examples=60)
-@given(partial_problems(), st.sampled_from(["trace", "det", "weighted"]))
+@given(partial_state_problems(), st.sampled_from(["trace", "det", "weighted"]))
 def test_generalised_ci_bound_holds_in_the_worst_direction(problem, kind):
     Hs, Ps, n = problem
     xs = [np.zeros(P.shape[0]) for P in Ps]
@@ -245,7 +218,7 @@ def exact_condition_of_fused_information(Ps, Hs, weights, n):
 
 
 @settings(max_examples=30)
-@given(partial_problems(), st.sampled_from(["fast", "fixed"]), st.integers(0, 2**32 - 1))
+@given(partial_state_problems(), st.sampled_from(["fast", "fixed"]), st.integers(0, 2**32 - 1))
 def test_generalised_ci_bound_holds_for_fast_and_given_weights(problem, rule, seed):
     """Niehsen's weights can give the only estimate of some directions a weight so small
     (1 / trace of a covariance of condition number 1e12) that the fused information is
