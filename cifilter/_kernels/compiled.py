@@ -17,295 +17,34 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .._numerics.criteria import GAP_TOL, SLOPE_ROUNDING
+from .._numerics.criteria import GAP_TOL
 from .._numerics.information import DIAGONAL_TRUST
+from .primitives import (
+    EPS,
+    KIND_DET,
+    KIND_NONE,
+    KIND_TRACE,
+    KIND_WEIGHTED,
+    add_gram,
+    cholesky,
+    diagonal_spread_squared,
+    interval_gap,
+    jacobi_eigh,
+    lower_inverse,
+    lower_times,
+    minimize_interval,
+    numerically_positive_definite,
+    pair_derivative,
+    report,
+    rounding_scale,
+    slope_rounding,
+    times_lower,
+)
 
-KIND_TRACE, KIND_DET, KIND_WEIGHTED, KIND_NONE = 0, 1, 2, 3
-_EPS = float(np.finfo(float).eps)
-_XTOL = 1e-13  # minimize_convex_interval's defaults
-_MAX_ITER = 100
 _CHUNK = 128  # items per scratch allocation
 
 _jit = njit(cache=True, error_model="numpy", fastmath=False, nogil=True)
 _jit_parallel = njit(cache=True, error_model="numpy", fastmath=False, parallel=True)
-
-
-@_jit
-def _cholesky(A, R, n):
-    """Lower Cholesky factor of the lower triangle of A into R; False if not PD."""
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= R[j, k] * R[j, k]
-        if not (s > 0.0) or not math.isfinite(s):
-            return False
-        d = math.sqrt(s)
-        R[j, j] = d
-        for i in range(j):
-            R[i, j] = 0.0
-        for i in range(j + 1, n):
-            t = A[i, j]
-            for k in range(j):
-                t -= R[i, k] * R[j, k]
-            R[i, j] = t / d
-    return True
-
-
-@_jit
-def _numerically_positive_definite(R, n):
-    """``_information._numerically_positive_definite`` of one factor."""
-    lo = math.inf
-    hi = 0.0
-    for i in range(n):
-        for j in range(n):
-            if not math.isfinite(R[i, j]):
-                return False
-        d = abs(R[i, i])
-        lo = min(lo, d)
-        hi = max(hi, d)
-    return (hi / lo) ** 2 < 1.0 / (n * _EPS)
-
-
-@_jit
-def _diagonal_spread_squared(L, n):
-    lo = math.inf
-    hi = 0.0
-    for i in range(n):
-        d = abs(L[i, i])
-        lo = min(lo, d)
-        hi = max(hi, d)
-    return (hi / lo) ** 2
-
-
-@_jit
-def _lower_inverse(L, X, n):
-    """X = L^-1 for lower triangular L (forward substitution, column by column)."""
-    for j in range(n):
-        for i in range(j):
-            X[i, j] = 0.0
-        X[j, j] = 1.0 / L[j, j]
-        for i in range(j + 1, n):
-            s = 0.0
-            for k in range(j, i):
-                s -= L[i, k] * X[k, j]
-            X[i, j] = s / L[i, i]
-
-
-@_jit
-def _lower_times(L, A, out, n):
-    """out = L A for lower triangular L (its zeros above the diagonal are skipped)."""
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(i + 1):
-                s += L[i, k] * A[k, j]
-            out[i, j] = s
-
-
-@_jit
-def _times_lower(A, L, out, n):
-    """out = A L for lower triangular L (its zeros above the diagonal are skipped)."""
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(j, n):
-                s += A[i, k] * L[k, j]
-            out[i, j] = s
-
-
-@_jit
-def _add_gram(M, out, n):
-    """out += M M^T."""
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(n):
-                s += M[i, k] * M[j, k]
-            out[i, j] += s
-
-
-@_jit
-def _jacobi_eigh(A, lam, V, n):
-    """Eigen-decomposition of the symmetric A (destroyed) by cyclic Jacobi rotations.
-
-    A rotation is skipped where ``|a_pq| <= eps/2 sqrt(|a_pp a_qq|)`` (the criterion of
-    Demmel & Veselić, which gives small eigenvalues to high relative accuracy); each
-    rotation updates the two rows and columns it touches (the symmetric form of Golub &
-    Van Loan, Alg. 8.5.2). Returns False if the sweeps do not converge (the caller then
-    hands the item back to the numpy path).
-    """
-    for i in range(n):
-        for j in range(n):
-            V[i, j] = 1.0 if i == j else 0.0
-    tol2 = 0.25 * _EPS * _EPS
-    converged = False
-    for _ in range(60):
-        rotated = False
-        for p in range(n - 1):
-            for q in range(p + 1, n):
-                apq = A[p, q]
-                app = A[p, p]
-                aqq = A[q, q]
-                if apq * apq <= tol2 * abs(app * aqq):
-                    continue
-                rotated = True
-                theta = (aqq - app) / (2.0 * apq)
-                if abs(theta) > 1e150:
-                    t = 0.5 / theta
-                else:
-                    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                    if theta < 0.0:
-                        t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
-                tau = s / (1.0 + c)
-                A[p, p] = app - t * apq
-                A[q, q] = aqq + t * apq
-                A[p, q] = 0.0
-                A[q, p] = 0.0
-                for k in range(n):
-                    if k != p and k != q:
-                        akp = A[k, p]
-                        akq = A[k, q]
-                        value_p = akp - s * (akq + tau * akp)
-                        value_q = akq + s * (akp - tau * akq)
-                        A[k, p] = value_p
-                        A[p, k] = value_p
-                        A[k, q] = value_q
-                        A[q, k] = value_q
-                for k in range(n):
-                    vkp = V[k, p]
-                    vkq = V[k, q]
-                    V[k, p] = vkp - s * (vkq + tau * vkp)
-                    V[k, q] = vkq + s * (vkp - tau * vkq)
-        if not rotated:
-            converged = True
-            break
-    for i in range(n):
-        lam[i] = A[i, i]
-    return converged
-
-
-@_jit
-def _pair_derivative(omega, a, ca, n, kind):
-    """f' and f'' of the diagonalised two-estimate criterion (``_diagonalised_weights``)."""
-    g = 0.0
-    h = 0.0
-    if kind == KIND_DET:
-        for k in range(n):
-            ratio = a[k] / (1.0 + omega * a[k])
-            g -= ratio
-            h += ratio * ratio
-        return g, h
-    for k in range(n):
-        den = 1.0 + omega * a[k]
-        term = ca[k] / (den * den)
-        g -= term
-        h += term * a[k] / den
-    return g, 2.0 * h
-
-
-@_jit
-def _slope_rounding(lam, omega, c, n, kind, sigma):
-    """``_criteria.slope_rounding`` of one problem: the bound of the slope's rounding."""
-    total = 0.0
-    for k in range(n):
-        D = 1.0 + omega * (lam[k] - 1.0)
-        if kind == KIND_DET:
-            total += 1.0 / (D * D)
-        else:
-            total += abs(c[k]) * abs((2.0 * lam[k] - 1.0) * D
-                                     - 2.0 * omega * lam[k] * (lam[k] - 1.0)) / (D * D * D)
-    return SLOPE_ROUNDING * n * _EPS * sigma * total
-
-
-@_jit
-def _rounding_scale(L1i, P2, n):
-    """``_criteria.rounding_scale`` of one problem: ``||L_1^-1||_F^2 ||P_2||_F``."""
-    a = 0.0
-    b = 0.0
-    for i in range(n):
-        for j in range(n):
-            a = max(a, abs(L1i[i, j]))
-            b = max(b, abs(P2[i, j]))
-    na = 0.0
-    nb = 0.0
-    for i in range(n):
-        for j in range(n):
-            t = L1i[i, j] / a
-            na += t * t
-            t = P2[i, j] / b
-            nb += t * t
-    return (a * a * b) * na * math.sqrt(nb)
-
-
-@_jit
-def _interval_gap(t, slope):
-    """``_optimize.interval_gap``."""
-    return 0.5 * (abs(slope) + (2.0 * t - 1.0) * slope)
-
-
-@_jit
-def _minimize_interval(a, ca, n, kind, scale):
-    """``_optimize.minimize_convex_interval`` for one problem: (omega, iterations)."""
-    g0, _ = _pair_derivative(0.0, a, ca, n, kind)
-    g1, _ = _pair_derivative(1.0, a, ca, n, kind)
-    tiny = 1e-13 * scale
-    if abs(g0) <= tiny and abs(g1) <= tiny:
-        return 0.5, 0
-    if g0 >= 0.0:
-        return 0.0, 0
-    if g1 <= 0.0:
-        return 1.0, 0
-    w = 0.5
-    lo = 0.0
-    hi = 1.0
-    iterations = 0
-    for _ in range(_MAX_ITER):
-        g, h = _pair_derivative(w, a, ca, n, kind)
-        if g < 0.0:
-            lo = w
-        if g > 0.0:
-            hi = w
-        step = -g / h
-        newton = w + step
-        settled = abs(step) < _XTOL or g == 0.0
-        if newton > lo and newton < hi and math.isfinite(newton):
-            w = newton
-        elif not settled:
-            w = 0.5 * (lo + hi)
-        iterations += 1
-        if settled or hi - lo < _XTOL:
-            break
-    return w, iterations
-
-
-@_jit
-def _report(P, R, W, n, kind, out_value, out_log, b):
-    """``_criteria.criterion_report`` of one fused covariance; False if P is not
-    numerically positive definite (the numpy path then raises its error)."""
-    if not _cholesky(P, R, n) or not _numerically_positive_definite(R, n):
-        return False
-    if kind == KIND_DET:
-        log_det = 0.0
-        for i in range(n):
-            log_det += math.log(R[i, i])
-        log_det *= 2.0
-        out_log[b] = log_det
-        out_value[b] = math.exp(log_det)
-    elif kind == KIND_TRACE:
-        value = 0.0
-        for i in range(n):
-            value += P[i, i]
-        out_value[b] = value
-    elif kind == KIND_WEIGHTED:
-        wi = b if W.shape[0] > 1 else 0
-        value = 0.0
-        for i in range(n):
-            for j in range(n):
-                value += W[wi, i, j] * P[j, i]
-        out_value[b] = value
-    return True
 
 
 @_jit
@@ -330,7 +69,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
     e = work1[4]
     L1 = L[b, 0]
     L2 = L[b, 1]
-    _lower_inverse(L1, L1i, n)
+    lower_inverse(L1, L1i, n)
     # S = L1^-1 P2 L1^-T, symmetrised
     for i in range(n):
         for j in range(n):
@@ -349,10 +88,10 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
             s = 0.5 * (S[i, j] + S[j, i])
             S[i, j] = s
             S[j, i] = s
-    if not _jacobi_eigh(S, lam, U, n):
+    if not jacobi_eigh(S, lam, U, n):
         out_status[b] = 1
         return
-    _lower_times(L1, U, T, n)
+    lower_times(L1, U, T, n)
     usable = True
     lam_lo = math.inf
     lam_hi = -math.inf
@@ -361,7 +100,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
             usable = False
         lam_lo = min(lam_lo, lam[k])
         lam_hi = max(lam_hi, lam[k])
-    conditioning = max(_diagonal_spread_squared(L1, n), _diagonal_spread_squared(L2, n))
+    conditioning = max(diagonal_spread_squared(L1, n), diagonal_spread_squared(L2, n))
     if (not usable or not (lam_hi / lam_lo <= DIAGONAL_TRUST)
             or not (conditioning <= DIAGONAL_TRUST)):
         out_status[b] = 1
@@ -391,28 +130,28 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
             tr1 += c[k]
         scale = tr2 + tr1
     # The rounding of the slope (``_criteria.slope_rounding``, the numpy path's bound).
-    sigma = max(lam_hi, _rounding_scale(L1i, P[b, 1], n))
+    sigma = max(lam_hi, rounding_scale(L1i, P[b, 1], n))
     # A tie to rounding: f' within its rounding of zero at both ends (e.g. P_1 = P_2,
     # whose computed eigenvalues are 1 + O(cond eps)). Which end, or the flat 1/2, the
     # interval search then takes depends on the sign of rounding noise, which differs
     # between the Jacobi eigenvalues here and LAPACK's: the numpy path decides (1/2), so
     # that both backends break the tie alike.
-    g0, _ = _pair_derivative(0.0, a, ca, n, kind)
-    g1, _ = _pair_derivative(1.0, a, ca, n, kind)
-    if (abs(g0) <= _slope_rounding(lam, 0.0, c, n, kind, sigma)
-            and abs(g1) <= _slope_rounding(lam, 1.0, c, n, kind, sigma)):
+    g0, _ = pair_derivative(0.0, a, ca, n, kind)
+    g1, _ = pair_derivative(1.0, a, ca, n, kind)
+    if (abs(g0) <= slope_rounding(lam, 0.0, c, n, kind, sigma)
+            and abs(g1) <= slope_rounding(lam, 1.0, c, n, kind, sigma)):
         out_status[b] = 3
         return
-    omega, iterations = _minimize_interval(a, ca, n, kind, scale)
+    omega, iterations = minimize_interval(a, ca, n, kind, scale)
     if not math.isfinite(omega):
         omega = 0.5
-    slope, _ = _pair_derivative(omega, a, ca, n, kind)
+    slope, _ = pair_derivative(omega, a, ca, n, kind)
     # the certificate of the numpy path (``_criteria.pair_certificate``)
-    rounding = _slope_rounding(lam, omega, c, n, kind, sigma)
-    product = 2.0 * _EPS * (abs(slope) + rounding)
-    gap = max(_interval_gap(omega, slope - rounding),
-              _interval_gap(omega, slope + rounding)) + product
-    computed = _interval_gap(omega, slope)
+    rounding = slope_rounding(lam, omega, c, n, kind, sigma)
+    product = 2.0 * EPS * (abs(slope) + rounding)
+    gap = max(interval_gap(omega, slope - rounding),
+              interval_gap(omega, slope + rounding)) + product
+    computed = interval_gap(omega, slope)
     floor = rounding + product
     if kind != KIND_DET:
         value = 0.0
@@ -432,7 +171,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
     else:
         for k in range(n):
             e[k] = lam[k] / (1.0 + omega * (lam[k] - 1.0))
-        _times_lower(U.T, L1i, Tmp, n)
+        times_lower(U.T, L1i, Tmp, n)
         for i in range(n):
             for j in range(n):
                 s = 0.0
@@ -445,15 +184,15 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
     for i in range(n):  # Tmp = I - K1 (Tmp is free once K1 is formed)
         for j in range(n):
             Tmp[i, j] = (1.0 if i == j else 0.0) - K1[i, j]
-    _times_lower(K1, L1, M1, n)
-    _times_lower(Tmp, L2, M2, n)
+    times_lower(K1, L1, M1, n)
+    times_lower(Tmp, L2, M2, n)
     for i in range(n):
         for j in range(n):
             M1[i, j] = M1[i, j] / r1 if omega > 0.0 else 0.0
             M2[i, j] = M2[i, j] / r2 if omega < 1.0 else 0.0
             Pf[i, j] = 0.0
-    _add_gram(M1, Pf, n)
-    _add_gram(M2, Pf, n)
+    add_gram(M1, Pf, n)
+    add_gram(M2, Pf, n)
     for i in range(n):
         for j in range(i, n):
             s = 0.5 * (Pf[i, j] + Pf[j, i])
@@ -474,7 +213,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
     out_gap[b] = gap
     out_floor[b] = floor
     out_computed[b] = computed
-    if kind != KIND_NONE and not _report(Pf, R, W, n, kind, out_value, out_log, b):
+    if kind != KIND_NONE and not report(Pf, R, W, n, kind, out_value, out_log, b):
         out_status[b] = 2
         return
     out_status[b] = 0
@@ -534,7 +273,7 @@ def _weighted_item(b, x, L, weights, references, W, kind, out_x, out_P, out_K, o
     xf = work1[0]
     Li = work3
     for k in range(count):
-        _lower_inverse(L[b, k], Li[k], n)
+        lower_inverse(L[b, k], Li[k], n)
     # J = sum_k w_k L_k^-T L_k^-1 (lower triangle)
     for i in range(n):
         for j in range(i + 1):
@@ -545,10 +284,10 @@ def _weighted_item(b, x, L, weights, references, W, kind, out_x, out_P, out_K, o
                     t += Li[k, m, i] * Li[k, m, j]
                 s += weights[b, k] * t
             J[i, j] = s
-    if not _cholesky(J, R, n) or not _numerically_positive_definite(R, n):
+    if not cholesky(J, R, n) or not numerically_positive_definite(R, n):
         out_status[b] = 1
         return
-    _lower_inverse(R, Ri, n)
+    lower_inverse(R, Ri, n)
     reference = references[b]
     for i in range(n):
         for j in range(n):
@@ -559,9 +298,9 @@ def _weighted_item(b, x, L, weights, references, W, kind, out_x, out_P, out_K, o
             continue
         w = weights[b, k]
         # K_k = w_k (B_k L_k^-1), B_k = R^-T C_k, C_k = R^-1 L_k^-T (as numpy)
-        _lower_times(Ri, Li[k].T, C, n)
-        _times_lower(C.T, Ri, Bk.T, n)  # Bk = Ri^T C, written as its transpose C^T Ri
-        _times_lower(Bk, Li[k], M, n)  # M is scratch until the covariance below
+        lower_times(Ri, Li[k].T, C, n)
+        times_lower(C.T, Ri, Bk.T, n)  # Bk = Ri^T C, written as its transpose C^T Ri
+        times_lower(Bk, Li[k], M, n)  # M is scratch until the covariance below
         for i in range(n):
             for j in range(n):
                 value = w * M[i, j]
@@ -586,11 +325,11 @@ def _weighted_item(b, x, L, weights, references, W, kind, out_x, out_P, out_K, o
         if not w > 0.0:
             continue
         r = math.sqrt(w)
-        _times_lower(out_K[b, k], L[b, k], M, n)
+        times_lower(out_K[b, k], L[b, k], M, n)
         for i in range(n):
             for j in range(n):
                 M[i, j] = M[i, j] / r
-        _add_gram(M, Pf, n)
+        add_gram(M, Pf, n)
     for i in range(n):
         out_x[b, i] = xf[i]
         for j in range(i, n):
@@ -599,7 +338,7 @@ def _weighted_item(b, x, L, weights, references, W, kind, out_x, out_P, out_K, o
             out_P[b, j, i] = s
             Pf[i, j] = s
             Pf[j, i] = s
-    if kind != KIND_NONE and not _report(Pf, R, W, n, kind, out_value, out_log, b):
+    if kind != KIND_NONE and not report(Pf, R, W, n, kind, out_value, out_log, b):
         out_status[b] = 2
         return
     out_status[b] = 0
@@ -676,9 +415,9 @@ def _many_information(Li, w, count, n, J, R, Ri):
                     t += Li[k, m, i] * Li[k, m, j]
                 s += w[k] * t
             J[i, j] = s
-    if not _cholesky(J, R, n) or not _numerically_positive_definite(R, n):
+    if not cholesky(J, R, n) or not numerically_positive_definite(R, n):
         return False
-    _lower_inverse(R, Ri, n)
+    lower_inverse(R, Ri, n)
     return True
 
 
@@ -805,9 +544,9 @@ def _reduced_newton(H, g, free, w, count, Hr, Lr, rhs, d, index, spread):
             for b in range(k):
                 j = index[b]
                 Hr[a, b] = H[i, j] - H[i, p] - H[p, j] + H[p, p]
-        if not _cholesky(Hr, Lr, k) or not _numerically_positive_definite(Lr, k):
+        if not cholesky(Hr, Lr, k) or not numerically_positive_definite(Lr, k):
             return False, 0.0, math.inf
-        if not _diagonal_spread_squared(Lr, k) <= spread:
+        if not diagonal_spread_squared(Lr, k) <= spread:
             return False, 0.0, math.inf
         # solve Lr Lr^T y = rhs
         for a in range(k):
@@ -826,7 +565,7 @@ def _reduced_newton(H, g, free, w, count, Hr, Lr, rhs, d, index, spread):
             total += rhs[a]
         d[p] = -total
         # ||H_r^-1||_F = ||Lr^-1||_F^2 at most: Lr^-1 into Hr (free now)
-        _lower_inverse(Lr, Hr, k)
+        lower_inverse(Lr, Hr, k)
         for a in range(k):
             for b in range(a + 1):
                 inverse_norm += Hr[a, b] * Hr[a, b]
@@ -861,7 +600,7 @@ def _pinv_newton(H, g, free, count, kkt, vectors, lam, rhs, solution, d):
         rhs[i] = g[i] / curvature if free[i] else 0.0
     kkt[count, count] = 0.0
     rhs[count] = 0.0
-    if not _jacobi_eigh(kkt, lam, vectors, m):
+    if not jacobi_eigh(kkt, lam, vectors, m):
         return False, 0.0
     top = 0.0
     for k in range(m):
@@ -924,7 +663,7 @@ def _many_item(b, x, L, W, kind, out_w, out_iter, out_gap, out_floor, out_comput
     out_status[b] = 1  # handed back unless certified below
     kappa_inputs = 0.0
     for k in range(count):
-        _lower_inverse(L[b, k], Li[k], n)
+        lower_inverse(L[b, k], Li[k], n)
         kappa_inputs = max(kappa_inputs, _scaled_condition(L[b, k], Li[k], n))
     for k in range(count):
         w[k] = 1.0 / count
@@ -963,7 +702,7 @@ def _many_item(b, x, L, W, kind, out_w, out_iter, out_gap, out_floor, out_comput
         # same line by the secant of the derivative, up to the boundary (its "extend").
         extend = False
         now = 0.0
-        if previous_t > 0.0 and -previous_slope > 64.0 * _EPS * f_scale:
+        if previous_t > 0.0 and -previous_slope > 64.0 * EPS * f_scale:
             for k in range(count):
                 now -= g[k] * previous_d[k]
             extend = now < 0.5 * previous_slope
@@ -1004,7 +743,7 @@ def _many_item(b, x, L, W, kind, out_w, out_iter, out_gap, out_floor, out_comput
             # a step at the rounding level is taken unchecked (numpy's "last"); a zero
             # step, or one that did not halve the gap, is where numpy turns to
             # Frank-Wolfe: handed back
-            if step <= 4.0 * _EPS or (previous_last and not gap <= 0.5 * previous_gap):
+            if step <= 4.0 * EPS or (previous_last and not gap <= 0.5 * previous_gap):
                 return
             last = True
         elif not (slope < 0.0):
@@ -1081,13 +820,13 @@ def _many_item(b, x, L, W, kind, out_w, out_iter, out_gap, out_floor, out_comput
         g_max = max(g_max, abs(g[k]))
         along += w[k] * g[k]
     kappa = _scaled_condition(R, Ri, n) + kappa_inputs
-    r = 4.0 * (n + 1) * _EPS * kappa * g_max
+    r = 4.0 * (n + 1) * EPS * kappa * g_max
     top = -math.inf
     shifted = -math.inf
     for k in range(count):
         top = max(top, g[k])
         shifted = max(shifted, g[k] + 2.0 * r * (1.0 - w[k]))
-    summed = count * _EPS * abs(along)
+    summed = count * EPS * abs(along)
     computed = max(top - along, 0.0)
     gap = max(shifted - along, 0.0) + summed
     floor = 2.0 * r + summed
