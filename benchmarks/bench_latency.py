@@ -17,17 +17,19 @@ time of filterpy's ``update`` on the same filter. Run it with
 A tree other than the installed one is timed with ``--tree PATH`` (it is put first on
 ``sys.path``), so an older checkout can be measured with the same script. ``--backend``
 selects the backend of the CI family (``cifilter.set_backend``; default ``auto``, under
-which single calls stay on numpy), e.g. ``--backend numba --only "ci (trace),ci (det)"``
+which single calls take the compiled route once the kernels are compiled or cached),
+e.g. ``--backend numba --only "ci (trace),ci (det)"``
 to time the compiled kernels on the single-call path.
 
 ``--interleaved`` times only the three single calls of issue 24 (``kf.fuse(other,
 method="ci")``, ``cifilter.fuse`` on two ``(x, P)`` pairs and filterpy's ``update``) with
 their calls interleaved one by one (``--repeat`` rounds of ``--number`` calls of each), so
 that a disturbance of the shared machine hits each alike, and reports the minimum and the
-median call of each, with the numpy backend, with ``"auto"`` (which keeps single calls on
-numpy) and, when numba is installed, with ``"numba"`` (the compiled kernels on the single
-call, after a warm-up); ``--profile`` adds a cProfile breakdown of ``kf.fuse`` by layer and the
-number of Python calls per fuse:
+median call of each, with the numpy backend, with ``"auto"`` (single calls on the
+compiled route when the kernels are in numba's cache, else on numpy) and, when numba is
+installed, with ``"numba"`` (the compiled kernels on the single call, after a warm-up);
+``--profile`` adds a cProfile breakdown of ``kf.fuse`` by layer and the number of Python
+calls per fuse:
 
     python benchmarks/bench_latency.py --interleaved --profile
 """

@@ -42,6 +42,9 @@ __all__ = ["FusionMethod", "available_methods", "fuse", "get_method", "register_
 
 # A horizon hook: ``hook(estimates, model, steps, options) -> (core_options, info)``.
 _HorizonHook = Callable[..., tuple[Mapping[str, Any], Mapping[str, Any]]]
+# A rule's route for two single estimates:
+# ``pair(pairs, options, H=None, times=None) -> FusionResult or None``.
+_PairRoute = Callable[..., Optional[FusionResult]]
 
 # The options the front door handles for the rules whose record lists them in
 # ``front_door``: what each name enables, and what it means (for the messages).
@@ -115,6 +118,17 @@ class FusionMethod:
         (``times=``/``at=``/``motion=``: its guarantee holds for estimates whose covariance
         bounds their error and whose correlation is unknown, which the time alignment
         produces). Empty: none of them.
+    pair : callable or None
+        ``pair(pairs, options, H=None, times=None) -> FusionResult or None``: a shorter
+        route for the commonest call, two single ``(x, P)`` pairs (as given; not validated)
+        and the rule's options, without front-door options but ``H=`` (then ``H`` holds the
+        checked observation matrices, one per pair, None for the full state) or ``times=``
+        (then ``times`` is ``(times, at, motion, labels)`` as given to :func:`fuse`, for
+        :func:`cifilter._numerics.alignment.aligned_pair`, and the result's ``info`` has
+        the front door's ``at`` and ``retrodiction_alpha``). :func:`fuse` tries
+        it first; None sends the call the usual way (which validates and explains any
+        error), so the route must give the usual way's result whenever it answers (for
+        ``"ci"``: one compiled call).
     signature : tuple or None
         The option names the rule accepts, those it requires and whether it takes any
         keyword (computed from ``core`` or ``function`` when None, once; likewise the
@@ -146,6 +160,7 @@ class FusionMethod:
         default=None, repr=False, compare=False)
     truth_takes_count: bool = field(default=False, init=False, repr=False, compare=False)
     truth_takes_sizes: bool = field(default=False, init=False, repr=False, compare=False)
+    pair: Optional[_PairRoute] = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         # computed once: inspect.signature is slow per call (the network simulation asks
@@ -211,7 +226,8 @@ def register_method(name: str, function: Callable[..., FusionResult], *, summary
                     truth_options: Optional[Callable[..., Mapping[str, Any]]] = None,
                     core: Optional[Callable[..., FusionResult]] = None,
                     horizon: Optional[_HorizonHook] = None, weights: str = "",
-                    front_door: Sequence[str] = (), replace: bool = False) -> FusionMethod:
+                    front_door: Sequence[str] = (), replace: bool = False,
+                    pair: Optional[_PairRoute] = None) -> FusionMethod:
     """Register a fusion rule so that ``fuse(..., method=name)`` can use it.
 
     Parameters
@@ -242,6 +258,9 @@ def register_method(name: str, function: Callable[..., FusionResult], *, summary
         (needs ``core``), ``"residual"``, ``"times"``. Default: none.
     replace : bool, optional
         Allow replacing an existing registration (default False).
+    pair : callable, optional
+        A shorter route for two single estimates (see :class:`FusionMethod`); it must
+        return the result the usual route gives, or None.
 
     Returns
     -------
@@ -251,7 +270,7 @@ def register_method(name: str, function: Callable[..., FusionResult], *, summary
     Raises
     ------
     TypeError
-        If ``name`` is not a string or ``function``, ``core``, ``horizon`` or
+        If ``name`` is not a string or ``function``, ``core``, ``horizon``, ``pair`` or
         ``truth_options`` is not callable, or ``horizon`` or ``front_door=("H",)`` is given
         without ``core``.
     ValueError
@@ -280,7 +299,7 @@ def register_method(name: str, function: Callable[..., FusionResult], *, summary
     if guarantee not in GUARANTEES:
         raise ValueError(f"guarantee must be one of {GUARANTEES}, got {guarantee!r}")
     for argument, value in (("truth_options", truth_options), ("core", core),
-                            ("horizon", horizon)):
+                            ("horizon", horizon), ("pair", pair)):
         if value is not None and not callable(value):
             raise TypeError(f"{argument} must be callable or None")
     if horizon is not None and core is None:
@@ -301,7 +320,7 @@ def register_method(name: str, function: Callable[..., FusionResult], *, summary
     if name in _REGISTRY and not replace:
         raise ValueError(f"a fusion method named {name!r} is already registered")
     record = FusionMethod(name, function, summary, reference, guarantee, truth_options,
-                          core, horizon, weights, front_door)
+                          core, horizon, weights, front_door, pair=pair)
     _REGISTRY[name] = record
     return record
 
@@ -640,6 +659,10 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
     if (H is None and residual is None and add is None and times is None and at is None
             and motion is None and horizon is None and model is None):
         # no front-door option: the checks below reduce to the rule's options
+        if record.pair is not None and len(pairs) == 2:
+            result = record.pair(pairs, options)
+            if result is not None:
+                return result
         _check_options(record, options)
         stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs],
                                names=_NAMES if labels is None else _LABELLED_NAMES,
@@ -650,13 +673,26 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
         # times= alone (kf.fuse(lag=)): the checks and steps below, for this case only
         if "times" not in record.front_door:
             raise _front_door_refusal(record, "times")
+        if record.pair is not None and len(pairs) == 2:
+            # the rule's short way of two single estimates (kf.fuse(other, lag=k)): the
+            # moved one checked and brought as below (alignment.aligned_pair), the other
+            # and the options checked by the route (None for anything else: see below)
+            result = record.pair(pairs, options, times=(times, at, motion, labels))
+            if result is not None:
+                return result
         _check_options(record, options)
         stacked = as_estimates([p[0] for p in pairs], [p[1] for p in pairs],
                                names=_NAMES if labels is None else _LABELLED_NAMES,
                                labels=labels)
         times, at = check_times(times, len(pairs), at)
         alpha = align_estimates(stacked, times, at, motion, labels)
-        result = _call_rule(record, stacked, options)
+        result = None
+        if record.pair is not None and len(pairs) == 2 and not stacked.batch_shape:
+            # the rule's route for two single estimates, on the aligned ones
+            x = stacked.x[..., None] if stacked.column else stacked.x
+            result = record.pair([(x[0], stacked.P[0]), (x[1], stacked.P[1])], options)
+        if result is None:
+            result = _call_rule(record, stacked, options)
         return result.replace(info={**result.info, "at": at, "retrodiction_alpha": alpha})
     Hs = check_observation_matrices(H, len(pairs))
     if (Hs is not None and residual is None and add is None and times is None and at is None
@@ -664,6 +700,10 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
         # H= alone (kf.fuse(H=)): the checks and steps below, for this case only
         if "H" not in record.front_door:
             raise _front_door_refusal(record, "H")
+        if record.pair is not None and len(pairs) == 2:
+            result = record.pair(pairs, options, Hs)
+            if result is not None:
+                return result
         _check_options(record, options)
         return _call_rule(record, as_partial_estimates(pairs, Hs, labels), options)
     requested = [option for option, given in (("H", Hs is not None),

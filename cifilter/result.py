@@ -230,6 +230,42 @@ class FusionResult:
         return result
 
 
+def owned_result(x: NDArray[np.float64], P: NDArray[np.float64], method: str,
+                 omega: Optional[NDArray[np.float64]], gains: Optional[NDArray[np.float64]],
+                 info: dict[str, Any]) -> FusionResult:
+    """A :class:`FusionResult` of arrays that nobody else holds, frozen in place.
+
+    For the single-call routes of the rules: the arrays (and the arrays among the values of
+    the plain dict ``info``, whose other values must be strings or numbers) are the
+    caller's fresh ones, made read-only themselves instead of through read-only views. The
+    result equals ``FusionResult(x, P, method, omega, gains, info)``.
+
+    Parameters
+    ----------
+    x, P, omega, gains : ndarray
+        The fields (``omega`` and ``gains`` may be None); set read-only here.
+    method : str
+        The rule's name.
+    info : dict
+        The diagnostics; stored as a read-only mapping.
+
+    Returns
+    -------
+    FusionResult
+        The result; ``weights`` is ``omega``.
+    """
+    for array in (x, P, omega, gains):
+        if array is not None:
+            array.setflags(write=False)
+    for value in info.values():
+        if type(value) is np.ndarray:
+            value.setflags(write=False)
+    result = object.__new__(FusionResult)
+    result.__dict__.update(x=x, P=P, method=method, omega=omega, gains=gains,
+                           info=MappingProxyType(info), weights=omega)
+    return result
+
+
 _FIELD_NAMES = frozenset(("x", "P", "method", "omega", "gains", "info", "weights"))
 _MISSING = object()
 

@@ -530,3 +530,91 @@ def test_times_on_a_batch_equal_the_items_fused_one_by_one(times, at):
             else:
                 assert batched.info["retrodiction_alpha"][i][b] == pytest.approx(alpha,
                                                                                 rel=1e-12)
+
+
+# ------------------------------------------- the cheap checks of H= (as_partial_estimates)
+def _bad(kind, x, P):
+    """A copy of the estimate (x, P) spoilt as ``kind`` says."""
+    x, P = x.copy(), P.copy()
+    if kind == "x nan":
+        x[-1] = np.nan
+    elif kind == "x inf":
+        x[0] = np.inf
+    elif kind == "P nan above the diagonal":
+        P[0, -1] = np.nan
+    elif kind == "P inf on the diagonal":
+        P[-1, -1] = np.inf
+    elif kind == "P -inf and +inf":
+        P[0, 0], P[-1, -1] = np.inf, -np.inf
+    elif kind == "P asymmetric":
+        P[0, -1] += 1e-6 * P[0, 0]
+    elif kind == "P not positive definite":
+        P[-1, -1] = -1.0
+    return x, P
+
+
+BAD = ["x nan", "x inf", "P nan above the diagonal", "P inf on the diagonal",
+       "P -inf and +inf", "P asymmetric", "P not positive definite"]
+
+
+@pytest.mark.parametrize("kind", BAD)
+@pytest.mark.parametrize("which", [0, 1])
+@pytest.mark.parametrize("n, m", [(4, 2), (10, 9)])  # (9 > 8: the checks on numpy arrays)
+def test_partial_estimates_give_the_general_validations_errors(kind, which, n, m):
+    """Every bad estimate of kf.fuse(other, H=) and fuse(..., H=) is refused with the error
+    of the general validation (as_estimates, the same type and text)."""
+    from cifilter import KalmanFilter
+    from cifilter._numerics.validation import as_estimates
+
+    rng = np.random.default_rng(n)
+    A, B = rng.standard_normal((n, n)), rng.standard_normal((m, m))
+    good = [(rng.standard_normal(n), A @ A.T + np.eye(n)),
+            (rng.standard_normal(m), B @ B.T + np.eye(m))]
+    H = rng.standard_normal((m, n))
+    estimates = list(good)
+    estimates[which] = _bad(kind, *good[which])
+    label = ("this filter", "other")[which]
+    with pytest.raises((ValueError, TypeError)) as general:
+        as_estimates([estimates[which][0]], [estimates[which][1]], min_count=1,
+                     names=("x", "P"), labels=(label,))
+    kf = KalmanFilter(dim_x=n, dim_z=m)
+    kf.x, kf.P = estimates[0][0].copy(), estimates[0][1].copy()
+    before = (kf.x.copy(), kf.P.copy())
+    with pytest.raises(type(general.value)) as raised:
+        kf.fuse(estimates[1], H=H)
+    assert str(raised.value) == str(general.value)
+    np.testing.assert_array_equal(kf.x, before[0])  # (the filter is left as it was)
+    np.testing.assert_array_equal(kf.P, before[1])
+    with pytest.raises((ValueError, TypeError)) as general:
+        as_estimates([estimates[which][0]], [estimates[which][1]], min_count=1,
+                     names=("x", "P"), labels=(f"estimates[{which}]",))
+    with pytest.raises(type(general.value)) as raised:
+        fuse(estimates, H=[None, H])
+    assert str(raised.value) == str(general.value)
+
+
+@pytest.mark.parametrize("n, m", [(4, 2), (10, 9)])
+def test_partial_estimates_in_every_layout_give_the_same_fusion(n, m):
+    """Fortran-ordered and column inputs, and a P asymmetric within the tolerance (taken
+    as its symmetric part), fuse as the plain symmetric inputs do, bit for bit; the inputs
+    are not modified."""
+    rng = np.random.default_rng(m)
+    A, B = rng.standard_normal((n, n)), rng.standard_normal((m, m))
+    P1, P2 = A @ A.T + np.eye(n), B @ B.T + np.eye(m)
+    x1, x2 = rng.standard_normal(n), rng.standard_normal(m)
+    H = rng.standard_normal((m, n))
+    plain = fuse([(x1, P1), (x2, P2)], H=[None, H])
+    E = np.zeros((m, m))
+    E[0, -1] = 1e-12 * P2[0, 0]
+    skew = P2 + E
+    inputs = [(x1[:, None], np.asfortranarray(P1)), (x2, skew)]
+    copies = [(x.copy(), P.copy()) for x, P in inputs]
+    other = fuse(inputs, H=[None, np.asfortranarray(H)])
+    symmetric = fuse([(x1, P1), (x2, 0.5 * (skew + skew.T))], H=[None, H])
+    np.testing.assert_array_equal(other.x.ravel(), symmetric.x)
+    np.testing.assert_array_equal(other.P, symmetric.P)
+    np.testing.assert_allclose(other.P, plain.P, rtol=1e-9)
+    assert other.x.shape == (n, 1)
+    for (x, P), (x0, P0) in zip(inputs, copies):
+        np.testing.assert_array_equal(x, x0)
+        np.testing.assert_array_equal(P, P0)

@@ -48,6 +48,29 @@ print(json.dumps({"reports": reports, "notices": notices,
 """
 
 
+# One process: a single fusion of two 4x4 estimates under "auto" (the single-call route),
+# then where it went and whether it started a compilation or warned.
+SINGLE_CALL = """
+import json, warnings
+import numpy as np
+import cifilter
+from cifilter._kernels import dispatch
+
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    cifilter.fuse([(np.zeros(4), np.eye(4)), (np.ones(4), 2.0 * np.eye(4))])
+report = dispatch.report()
+print(json.dumps({"kernels": report["kernels"], "compiling": report["compiling"],
+                  "ready": report["ready"], "warnings": [str(w.message) for w in caught]}))
+"""
+
+
+def _single_call(cache):
+    done = _run(["-c", SINGLE_CALL], cache)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def _run(args, cache):
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
     return subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env,
@@ -65,6 +88,11 @@ def test_first_auto_call_uses_numpy_and_after_compile_a_new_process_uses_the_ker
     cache = tmp_path / "numba-cache"
     cache.mkdir()
 
+    # 0. empty cache: a single call under auto stays on numpy, starts no compilation and
+    # says nothing (the single-call route waits for the kernels to be there)
+    single = _single_call(cache)
+    assert single == {"kernels": 0, "compiling": False, "ready": False, "warnings": []}
+
     # 1. empty cache: numpy answers, the compilation runs in the background, one notice
     before = _first_calls(cache, tmp_path / "before.npz")
     assert before["backend"] == "auto"
@@ -78,10 +106,11 @@ def test_first_auto_call_uses_numpy_and_after_compile_a_new_process_uses_the_ker
     # 2. compile ahead of time, in the foreground, into the same cache
     done = _run(["-m", "cifilter", "compile"], cache)
     assert done.returncode == 0, done.stderr
-    for name in ("ci_pair_optimal", "ci_pair_optimal_serial", "weighted_fusion",
-                 "weighted_fusion_serial", "ci_many_optimal", "ci_many_optimal_serial"):
+    for name in ("ci_pair", "ci_pair_serial", "weighted_fusion",
+                 "weighted_fusion_serial", "ci_many_optimal", "ci_many_optimal_serial",
+                 "generalised_pair", "shift_single"):
         assert name in done.stdout
-    assert "6 kernels ready in" in done.stdout
+    assert "8 kernels ready in" in done.stdout
 
     # 3. a new process: its first call runs on the kernels (loaded from the cache), silently
     after = _first_calls(cache, tmp_path / "after.npz")
@@ -90,6 +119,9 @@ def test_first_auto_call_uses_numpy_and_after_compile_a_new_process_uses_the_ker
     assert after["reports"][0]["ready"] is True
     assert after["reports"][1]["kernels"] == 2
     assert after["notices"] == []
+    # and a new process's first single call under auto takes the compiled route, silently
+    single = _single_call(cache)
+    assert single == {"kernels": 1, "compiling": False, "ready": True, "warnings": []}
 
     # 4. the two answers agree to the documented bound of the optimal weights
     a, b = np.load(tmp_path / "before.npz"), np.load(tmp_path / "after.npz")

@@ -187,7 +187,9 @@ def test_fuse_validates_the_estimates_once(monkeypatch):
                             ("pci", {"rho": 0.5}), ("bayes", {"samples": 5, "rng": 0})]:
         calls.clear()
         fuse(_pair(), method, **options)
-        assert len(calls) == 1, method
+        # plain "ci" of two pairs takes the rule's pair route, whose checks run inside
+        # the compiled call or the lean LAPACK path: no Python validation at all there
+        assert len(calls) == (0 if (method, options) == ("ci", {}) else 1), method
         calls.clear()
         if get_method(method).horizon is not None and "omega" not in options:
             fuse(_pair(), method, horizon=3, model=_model(), **options)

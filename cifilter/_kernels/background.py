@@ -25,15 +25,16 @@ import numpy as np
 
 from ..backend import CompileNotice, register_compiler
 
-__all__ = ["KERNELS", "compile_all", "ready", "status"]
+__all__ = ["KERNELS", "compile_all", "loaded", "ready", "status"]
 
-KERNELS = ("ci_pair_optimal", "ci_pair_optimal_serial", "weighted_fusion",
-           "weighted_fusion_serial", "ci_many_optimal", "ci_many_optimal_serial")
+KERNELS = ("ci_pair", "ci_pair_serial", "weighted_fusion",
+           "weighted_fusion_serial", "ci_many_optimal", "ci_many_optimal_serial",
+           "generalised_pair", "shift_single")
 """The kernels the dispatch calls (each compiled for one signature)."""
 
 _lock = threading.Lock()
 _state: dict[str, Any] = {"ready": False, "started": False, "thread": None, "error": None,
-                          "compiled": []}
+                          "compiled": [], "tried_loading": False}
 
 
 def _arguments(name: str) -> tuple:
@@ -44,12 +45,20 @@ def _arguments(name: str) -> tuple:
     W = np.zeros((1, 1, 1))
     value, log_value = np.empty(size), np.empty(size)
     status = np.empty(size, dtype=np.int8)
-    if name.startswith("ci_pair_optimal"):
+    if name.startswith("ci_pair"):
         x2, P2, L2 = np.zeros((size, 2, n)), np.stack([P, P], axis=1), np.stack([L, L], axis=1)
-        omega, gap, floor, computed = (np.empty(size) for _ in range(4))
-        iterations = np.zeros(size, dtype=int)
-        return (x2, P2, L2, W, 0, omega, iterations, gap, floor, computed, np.empty((size, n)),
-                np.empty((size, n, n)), np.empty((size, 2, n, n)), value, log_value, status)
+        return (x2, P2, L2, W, 0, 0, np.empty((size, 8)), np.empty((size, n)),
+                np.empty((size, n, n)), np.empty((size, 2, n, n)))
+    if name == "shift_single":  # (dispatch._shifted_single's: M, N read-only)
+        M, N = eye[0].copy(), eye[0].copy()
+        M.flags.writeable = N.flags.writeable = False
+        return (np.zeros(n), eye[0].copy(), M, N, True, np.empty((n, n)), np.empty(n),
+                np.empty((n, n)))
+    if name == "generalised_pair":  # (_kernels.generalised.partial_pair's arguments)
+        xb, Pb = np.zeros(1), np.eye(1)
+        return (np.zeros(n), eye[0].copy(), eye[0].copy(), xb, Pb, Pb.copy(),
+                np.zeros((1, n)), W, 0, True, np.empty(n), np.empty((n, n)),
+                np.empty((n, n)), np.empty((n, 1)), np.zeros(5))
     if name.startswith("ci_many_optimal"):
         count = 3
         x3, L3 = np.zeros((size, count, n)), np.stack([L, L, L], axis=1)
@@ -71,6 +80,14 @@ def _compiled_imported() -> bool:
 
 
 def _dispatcher(name: str) -> Any:
+    if name == "generalised_pair":
+        from . import generalised
+
+        return generalised.generalised_pair
+    if name == "shift_single":
+        from . import shift
+
+        return shift.shift_single
     from . import compiled
 
     return getattr(compiled, name)
@@ -83,7 +100,7 @@ def _signature(dispatcher: Any, name: str) -> tuple:
 def _maybe_cached() -> bool:
     """Whether numba's on-disk cache may hold the kernels, checked without importing numba.
 
-    Looks for the index file of the first kernel (``compiled.ci_pair_optimal-<line>.py<XY>.nbi``)
+    Looks for the index file of the first kernel (``compiled.ci_pair-<line>.py<XY>.nbi``)
     where numba's cache locators put it: under ``NUMBA_CACHE_DIR`` when it is set, else in the
     ``__pycache__`` beside ``compiled.py`` or in the user-wide cache (``$XDG_CACHE_HOME/numba`` or
     ``~/.cache/numba``). A hint only: when it says yes, :func:`_load` asks numba itself
@@ -155,6 +172,33 @@ def ready() -> bool:
                   "compiles and caches them ahead of time.", CompileNotice,
                   stacklevel=_caller_level())
     return False
+
+
+def loaded() -> bool:
+    """Whether the kernels can run now, without starting a compilation or a notice.
+
+    True when :func:`ready` is; otherwise, once per process, the kernels are loaded from
+    numba's on-disk cache when the cache seems to hold them (importing numba: 0.3-0.6 s,
+    once), and never compiled. For single calls under ``"auto"``, which keep to numpy
+    until the kernels are there (a batched call or ``python -m cifilter compile`` puts them
+    there) and do not start the background compilation themselves.
+    """
+    if _state["ready"]:
+        return True
+    if _state["started"] or _state.get("tried_loading"):
+        return False
+    with _lock:
+        if _state["ready"] or _state["started"] or _state.get("tried_loading"):
+            return bool(_state["ready"])
+        _state["tried_loading"] = True
+        try:
+            ok = (_compiled_imported() or _maybe_cached()) and all(
+                [_load(name) for name in KERNELS])
+        except Exception:  # a cache numba cannot read: the single calls stay on numpy
+            ok = False
+        if ok:
+            _state["ready"] = True
+    return bool(ok)
 
 
 def _caller_level() -> int:

@@ -19,6 +19,7 @@ from numba import njit, prange
 
 from .._numerics.criteria import GAP_TOL
 from .._numerics.information import DIAGONAL_TRUST
+from .._numerics.validation import SYMMETRY_RTOL
 from .primitives import (
     EPS,
     KIND_DET,
@@ -43,14 +44,23 @@ from .primitives import (
 
 _CHUNK = 128  # items per scratch allocation
 
+# ci_pair's modes (bits) and the columns of its scalar output
+MODE_CHECK = 1
+MODE_GAINS = 2
+S_OMEGA, S_ITERATIONS, S_GAP, S_FLOOR, S_COMPUTED, S_VALUE, S_LOG_VALUE, S_STATUS = range(8)
+STATUS_NOT_FINITE = 4
+STATUS_NOT_SYMMETRIC = 5
+STATUS_NOT_POSITIVE = 6
+NO_OVERFLOW = 2.0**1023  # ``_numerics.validation``: 2 P overflows from here on
+
 _jit = njit(cache=True, error_model="numpy", fastmath=False, nogil=True)
 _jit_parallel = njit(cache=True, error_model="numpy", fastmath=False, parallel=True)
 
 
 @_jit
-def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out_computed,
-               out_x, out_P, out_K, out_value, out_log, out_status, work2, work1):
-    """One item of :func:`ci_pair_optimal` (``work*``: its scratch arrays)."""
+def _pair_item(b, x, P, L, W, kind, gains, out_s, out_x, out_P, out_K, work2, work1):
+    """One item of :func:`ci_pair` on checked, factored input (``work*``: its scratch
+    arrays; ``out_s[b]``: the scalars, see :func:`ci_pair`)."""
     n = x.shape[2]
     L1i = work2[0]
     S = work2[1]
@@ -89,7 +99,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
             S[i, j] = s
             S[j, i] = s
     if not jacobi_eigh(S, lam, U, n):
-        out_status[b] = 1
+        out_s[b, S_STATUS] = 1
         return
     lower_times(L1, U, T, n)
     usable = True
@@ -103,7 +113,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
     conditioning = max(diagonal_spread_squared(L1, n), diagonal_spread_squared(L2, n))
     if (not usable or not (lam_hi / lam_lo <= DIAGONAL_TRUST)
             or not (conditioning <= DIAGONAL_TRUST)):
-        out_status[b] = 1
+        out_s[b, S_STATUS] = 1
         return
     for k in range(n):
         a[k] = lam[k] - 1.0
@@ -140,7 +150,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
     g1, _ = pair_derivative(1.0, a, ca, n, kind)
     if (abs(g0) <= slope_rounding(lam, 0.0, c, n, kind, sigma)
             and abs(g1) <= slope_rounding(lam, 1.0, c, n, kind, sigma)):
-        out_status[b] = 3
+        out_s[b, S_STATUS] = 3
         return
     omega, iterations = minimize_interval(a, ca, n, kind, scale)
     if not math.isfinite(omega):
@@ -161,7 +171,7 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
         computed = computed / value
         floor = floor / value
     if not gap <= GAP_TOL:  # not certified here (or not finite): the numpy path decides
-        out_status[b] = 1
+        out_s[b, S_STATUS] = 1
         return
     # assembly (_fuse_diagonalised): K1 = omega T diag(e) (U^T L1^-1)
     if omega == 1.0:
@@ -205,55 +215,137 @@ def _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out
         for k in range(n):
             s += K1[i, k] * (x[b, 0, k] - x[b, 1, k])
         out_x[b, i] = x[b, 1, i] + s
-        for j in range(n):
-            out_K[b, 0, i, j] = K1[i, j]
-            out_K[b, 1, i, j] = (1.0 if i == j else 0.0) - K1[i, j]
-    out_omega[b] = omega
-    out_iter[b] = iterations
-    out_gap[b] = gap
-    out_floor[b] = floor
-    out_computed[b] = computed
-    if kind != KIND_NONE and not report(Pf, R, W, n, kind, out_value, out_log, b):
-        out_status[b] = 2
+        if gains:
+            for j in range(n):
+                out_K[b, 0, i, j] = K1[i, j]
+                out_K[b, 1, i, j] = (1.0 if i == j else 0.0) - K1[i, j]
+    out_s[b, S_OMEGA] = omega
+    out_s[b, S_ITERATIONS] = iterations
+    out_s[b, S_GAP] = gap
+    out_s[b, S_FLOOR] = floor
+    out_s[b, S_COMPUTED] = computed
+    if kind != KIND_NONE and not report(Pf, R, W, n, kind, out_s[:, S_VALUE],
+                                        out_s[:, S_LOG_VALUE], b):
+        out_s[b, S_STATUS] = 2
         return
-    out_status[b] = 0
+    out_s[b, S_STATUS] = 0
+
+
+@_jit
+def _lapack_cholesky(A, R, n):
+    """Lower Cholesky factor of the lower triangle of ``A`` into ``R`` in LAPACK's order
+    (``dpotf2``: a dot product, then one subtraction; the column scaled by the reciprocal
+    of its diagonal), so that it mostly equals ``dpotrf``'s factor bit for bit (on random
+    4x4 matrices 2 in 3 factors, against 1 in 17 for :func:`primitives.cholesky`); False
+    if not positive definite. (A candidate for ``primitives``.)"""
+    for j in range(n):
+        s = 0.0
+        for k in range(j):
+            s += R[j, k] * R[j, k]
+        s = A[j, j] - s
+        if not (s > 0.0) or not math.isfinite(s):
+            return False
+        d = math.sqrt(s)
+        R[j, j] = d
+        r = 1.0 / d
+        for i in range(j):
+            R[i, j] = 0.0
+        for i in range(j + 1, n):
+            t = 0.0
+            for k in range(j):
+                t += R[i, k] * R[j, k]
+            R[i, j] = (A[i, j] - t) * r
+    return True
+
+
+@_jit
+def _checked_pair(b, x, P, L, n, out_s):
+    """Check item ``b`` of :func:`ci_pair` as the validation does
+    (``_numerics.validation``'s single-problem path): finite means, covariances finite with
+    entries below ``2**1023``, symmetric within ``SYMMETRY_RTOL`` (symmetrised in place as
+    ``(P + P^T) * 0.5`` when not exactly symmetric) and Cholesky-factorisable, with finite
+    factors, written to ``L[b]``. False (with a status) when a test fails."""
+    for i in range(2):
+        for k in range(n):
+            if not math.isfinite(x[b, i, k]):
+                out_s[b, S_STATUS] = STATUS_NOT_FINITE
+                return False
+        exact = True
+        asymmetry = 0.0
+        scale = 0.0
+        for r in range(n):
+            for c in range(n):
+                if not abs(P[b, i, r, c]) < NO_OVERFLOW:  # (NaN fails too)
+                    out_s[b, S_STATUS] = STATUS_NOT_FINITE
+                    return False
+        for r in range(n):
+            scale = max(scale, abs(P[b, i, r, r]))
+            for c in range(r + 1, n):
+                d = abs(P[b, i, r, c] - P[b, i, c, r])
+                if d != 0.0:
+                    exact = False
+                asymmetry = max(asymmetry, d)
+        if not exact:
+            if asymmetry > SYMMETRY_RTOL * scale:
+                out_s[b, S_STATUS] = STATUS_NOT_SYMMETRIC
+                return False
+            for r in range(n):
+                for c in range(r + 1, n):
+                    s = (P[b, i, r, c] + P[b, i, c, r]) * 0.5
+                    P[b, i, r, c] = s
+                    P[b, i, c, r] = s
+        if not _lapack_cholesky(P[b, i], L[b, i], n):
+            out_s[b, S_STATUS] = STATUS_NOT_POSITIVE
+            return False
+        for r in range(n):
+            for c in range(r + 1):
+                if not math.isfinite(L[b, i, r, c]):
+                    out_s[b, S_STATUS] = STATUS_NOT_POSITIVE
+                    return False
+    return True
+
+
+@_jit
+def _pair_items(start, stop, x, P, L, W, kind, mode, out_s, out_x, out_P, out_K):
+    """Items ``start`` to ``stop`` of :func:`ci_pair` (scratch allocated once)."""
+    n = x.shape[2]
+    work2 = np.empty((10, n, n))
+    work1 = np.empty((5, n))
+    for b in range(start, stop):
+        if mode & MODE_CHECK and not _checked_pair(b, x, P, L, n, out_s):
+            continue
+        _pair_item(b, x, P, L, W, kind, mode & MODE_GAINS != 0, out_s, out_x, out_P, out_K,
+                   work2, work1)
 
 
 @_jit_parallel
-def ci_pair_optimal(x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor, out_computed,
-                    out_x, out_P, out_K, out_value, out_log, out_status):
+def ci_pair(x, P, L, W, kind, mode, out_s, out_x, out_P, out_K):
     """Criterion-optimal CI of two estimates per item (``_ci_weights._diagonalised_weights``
     and ``_fuse_diagonalised``), with the criterion report of the fused covariance and the
     certificate's parts (``_criteria.pair_certificate``: gap, floor, computed gap).
 
-    ``out_status``: 0 done; 1 the diagonalisation is not trusted or does not certify the
-    tolerance (the numpy path certifies and re-solves from Cholesky factors); 2 the fused
-    covariance is not numerically positive definite; 3 a tie to rounding (the numpy path
-    breaks it).
+    ``x`` (B, 2, n), ``P`` and ``L`` (B, 2, n, n); ``mode``: ``MODE_CHECK`` checks and
+    factors the raw input first (``P`` symmetrised in place, ``L`` written; see
+    :func:`_checked_pair`), else ``L`` holds the Cholesky factors of ``P``; ``MODE_GAINS``
+    writes the gains into ``out_K`` (B, 2, n, n) (else it is not touched and may be empty).
+    ``out_s`` (B, 8): per item omega, iterations, gap, floor, computed gap, value, log value
+    and status (columns ``S_*``): 0 done; 1 the diagonalisation is not trusted or does not
+    certify the tolerance (the numpy path certifies and re-solves from Cholesky factors); 2
+    the fused covariance is not numerically positive definite; 3 a tie to rounding (the
+    numpy path breaks it); with ``MODE_CHECK`` 4 a value is not finite (or too large), 5 a
+    covariance is not symmetric, 6 not positive definite (the validation explains).
     """
     size = x.shape[0]
-    n = x.shape[2]
     chunks = (size + _CHUNK - 1) // _CHUNK
     for chunk in prange(chunks):
-        work2 = np.empty((10, n, n))
-        work1 = np.empty((5, n))
-        for b in range(chunk * _CHUNK, min(size, (chunk + 1) * _CHUNK)):
-            _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor,
-                       out_computed, out_x, out_P, out_K, out_value, out_log, out_status,
-                       work2, work1)
+        _pair_items(chunk * _CHUNK, min(size, (chunk + 1) * _CHUNK), x, P, L, W, kind, mode,
+                    out_s, out_x, out_P, out_K)
 
 
 @_jit
-def ci_pair_optimal_serial(x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor,
-                           out_computed, out_x, out_P, out_K, out_value, out_log, out_status):
-    """:func:`ci_pair_optimal` without threads (small batches)."""
-    n = x.shape[2]
-    work2 = np.empty((10, n, n))
-    work1 = np.empty((5, n))
-    for b in range(x.shape[0]):
-        _pair_item(b, x, P, L, W, kind, out_omega, out_iter, out_gap, out_floor,
-                   out_computed, out_x, out_P, out_K, out_value, out_log, out_status,
-                   work2, work1)
+def ci_pair_serial(x, P, L, W, kind, mode, out_s, out_x, out_P, out_K):
+    """:func:`ci_pair` without threads (small batches and single calls)."""
+    _pair_items(0, x.shape[0], x, P, L, W, kind, mode, out_s, out_x, out_P, out_K)
 
 
 @_jit

@@ -10,35 +10,39 @@ error for them, so results, ``info`` and errors are those of the numpy path.
 """
 
 import contextlib
+import math
 
 import numpy as np
 
 from .._numerics.criteria import criterion_report, gap_converged
 from .._numerics.information import reference_estimates
 from .._numerics.validation import Estimates
-from ..backend import get_backend, use_kernels
+from ..backend import get_backend, numba_available, use_kernels
 from . import background
 
 __all__ = ["AUTO_MAX_DIM", "MANY_MAX_COUNT", "PIN_BLAS", "optimal_many", "optimal_pair",
-           "report", "weighted"]
+           "pair_checked", "pair_single", "report", "shift_for", "single_ready", "weighted"]
 
 _calls = {"kernels": 0, "numpy_while_compiling": 0, "handed_back": 0}
 
 
-def _go(size, *arrays):
+def _go(size, *arrays, count=True):
     """Whether this call runs on the kernels. Under ``"auto"`` only for problems of at most
     :data:`AUTO_MAX_DIM` dimensions (``arrays[0]`` the means, ``(..., n)``) and when the
     kernels are ready (compiled in this process or loaded from numba's cache): a call never
     waits for a compile; the first one that finds them missing starts the background
-    compilation."""
+    compilation. ``count=False``: the call is not counted in :func:`report` (a route that
+    hands the call to another one, which counts it)."""
     if not use_kernels(size, *arrays):
         return False
     if get_backend() == "auto" and arrays[0].shape[-1] > AUTO_MAX_DIM:
         return False
     if get_backend() == "auto" and not background.ready():
-        _calls["numpy_while_compiling"] += 1
+        if count:
+            _calls["numpy_while_compiling"] += 1
         return False
-    _calls["kernels"] += 1
+    if count:
+        _calls["kernels"] += 1
     return True
 
 
@@ -175,6 +179,47 @@ def _report(kind, value, log_value, shape):
     return report
 
 
+def _pair_outputs(size, n, gains):
+    """The output arrays of :func:`compiled.ci_pair`: scalars (size, 8), x, P, gains (an
+    empty (0, 2, n, n) stack without gains: one signature either way)."""
+    return (np.zeros((size, 8)), np.empty((size, n)), np.empty((size, n, n)),
+            np.empty((size if gains else 0, 2, n, n)))
+
+
+def _pair_scalars(scalars):
+    """omega, iterations, gap, floor, computed gap, value, log value, status of
+    :func:`compiled.ci_pair`'s scalar output (new arrays)."""
+    columns = scalars.T
+    return (columns[0].copy(), columns[1].astype(int), columns[2].copy(), columns[3].copy(),
+            columns[4].copy(), columns[5].copy(), columns[6].copy(),
+            columns[7].astype(np.int8))
+
+
+def _run_pair(size, x, P, L, Wk, kind, mode, gains):
+    scalars, x_out, P_out, K_out = _pair_outputs(size, x.shape[-1], gains)
+    with _threads(size):
+        _kernel("ci_pair", size)(x, P, L, Wk, _KINDS[kind], mode, scalars, x_out, P_out, K_out)
+    return scalars, x_out, P_out, K_out
+
+
+def _finish_pair(est, shape, size, n, x, P, L, W, kind, numpy_path, outputs):
+    """optimal_pair's answer from the kernel's outputs, the handed-back items re-solved."""
+    scalars, x_out, P_out, gains = outputs
+    omega, iterations, gap, floor, computed, value, log_value, status = _pair_scalars(scalars)
+    _, sub_W = _flat_criterion(W, shape, size, n)
+    weights = np.stack([omega, 1.0 - omega], axis=-1)
+    converged = gap_converged(gap, floor, computed)
+    _solve_handed_back(est, x, P, L, status, numpy_path, sub_W, kind,
+                       (weights, iterations, gap, floor, converged, x_out, P_out, gains,
+                        value, log_value))
+    info = {"iterations": iterations.reshape(shape), "converged": converged.reshape(shape),
+            "gap": gap.reshape(shape), "gap_floor": floor.reshape(shape),
+            "solver": "diagonalise"}
+    result = (x_out.reshape(shape + (n,)), P_out.reshape(shape + (n, n)),
+              gains.reshape(shape + (2, n, n)))
+    return weights.reshape(shape + (2,)), info, result, _report(kind, value, log_value, shape)
+
+
 def optimal_pair(est, kind, W, numpy_path):
     """Criterion-optimal CI of two estimates per batch item, or None (numpy backend).
 
@@ -187,26 +232,142 @@ def optimal_pair(est, kind, W, numpy_path):
         return None
     shape, n = est.batch_shape, est.dim
     x, P, L = _flat(est, size)
-    Wk, sub_W = _flat_criterion(W, shape, size, n)
-    omega, gap, floor, computed, value, log_value = (np.empty(size) for _ in range(6))
-    iterations = np.zeros(size, dtype=int)
-    status = np.empty(size, dtype=np.int8)
-    x_out, P_out, gains = np.empty((size, n)), np.empty((size, n, n)), np.empty((size, 2, n, n))
-    with _threads(size):
-        _kernel("ci_pair_optimal", size)(x, P, L, Wk, _KINDS[kind], omega, iterations, gap,
-                                         floor, computed, x_out, P_out, gains, value,
-                                         log_value, status)
-    weights = np.stack([omega, 1.0 - omega], axis=-1)
-    converged = gap_converged(gap, floor, computed)
-    _solve_handed_back(est, x, P, L, status, numpy_path, sub_W, kind,
-                       (weights, iterations, gap, floor, converged, x_out, P_out, gains,
-                        value, log_value))
-    info = {"iterations": iterations.reshape(shape), "converged": converged.reshape(shape),
-            "gap": gap.reshape(shape), "gap_floor": floor.reshape(shape),
-            "solver": "diagonalise"}
-    result = (x_out.reshape(shape + (n,)), P_out.reshape(shape + (n, n)),
-              gains.reshape(shape + (2, n, n)))
-    return weights.reshape(shape + (2,)), info, result, _report(kind, value, log_value, shape)
+    Wk, _ = _flat_criterion(W, shape, size, n)
+    from .compiled import MODE_GAINS
+
+    outputs = _run_pair(size, x, P, L, Wk, kind, MODE_GAINS, True)
+    return _finish_pair(est, shape, size, n, x, P, L, W, kind, numpy_path, outputs)
+
+
+def pair_checked(xs, Ps, column, kind, W, numpy_path):
+    """Criterion-optimal CI of two estimates per batch item from the raw input, validation
+    folded into the kernel's pass, or None.
+
+    ``xs`` (..., 2, n) or (..., 2, n, 1) (``column``) and ``Ps`` (..., 2, n, n), float64
+    arrays as the caller gave them (copied here; never modified). The kernel checks every
+    item as the validation does (finite, entries below ``2**1023``, symmetric within its
+    tolerance, then symmetrised, Cholesky-factorisable by its own factorisation) and
+    solves it as :func:`optimal_pair` does. Returns ``(weights, info, (x, P, gains),
+    report)`` as :func:`optimal_pair`, with the items the kernel hands back solved by
+    ``numpy_path`` from LAPACK's factors (as after the validation); None when the backend
+    keeps to numpy or when some item fails a check (the caller then validates and raises
+    the validation's error).
+    """
+    shape, n = Ps.shape[:-3], Ps.shape[-1]
+    size = math.prod(shape)
+    if not _go(size, Ps[..., 0, :], Ps, count=False):  # (the usual route counts these)
+        return None
+    x = np.array(xs[..., 0] if column else xs, dtype=np.float64, order="C").reshape(size, 2, n)
+    P = np.array(Ps, dtype=np.float64, order="C").reshape(size, 2, n, n)
+    L = np.empty(P.shape)
+    Wk, _ = _flat_criterion(W, shape, size, n)
+    from .compiled import MODE_CHECK, MODE_GAINS
+
+    outputs = _run_pair(size, x, P, L, Wk, kind, MODE_CHECK | MODE_GAINS, True)
+    status = outputs[0][:, 7]
+    if (status >= 4.0).any():  # (the validation answers this call: the usual route)
+        return None
+    handed = np.flatnonzero(status)
+    if handed.size:
+        # the numpy path solves these (ill-conditioned, ties) from LAPACK's factors, as
+        # after the validation: its answer there is sensitive to the factors' rounding
+        try:
+            L[handed] = np.linalg.cholesky(P[handed])
+        except np.linalg.LinAlgError:
+            return None
+    _calls["kernels"] += 1
+    est = Estimates(x.reshape(shape + (2, n)), P.reshape(shape + (2, n, n)),
+                    L.reshape(shape + (2, n, n)), column)
+    return _finish_pair(est, shape, size, n, x, P, L, W, kind, numpy_path, outputs)
+
+
+_single: list = []  # (ci_pair_serial, MODE_CHECK | MODE_GAINS), once imported
+_NO_W = np.zeros((1, 1, 1))  # the criterion matrix of "trace" and "det" (not read)
+
+
+def single_ready(n):
+    """Whether a single two-estimate call of dimension ``n`` goes to the compiled kernel
+    now: under ``"numba"`` (with numba installed; compiled on first use, as every kernel
+    there), and under ``"auto"`` for ``n <= AUTO_MAX_DIM`` once the kernels are there
+    (:func:`background.loaded`: compiled in this process or loaded from numba's cache; a
+    single call never starts a compilation)."""
+    name = get_backend()
+    if name == "numba":
+        return numba_available()
+    return name == "auto" and n <= AUTO_MAX_DIM and background.loaded()
+
+
+def pair_single(x1, P1, x2, P2, kind, W):
+    """Criterion-optimal CI of one pair in one compiled call, from the raw input.
+
+    ``x1``, ``x2`` float64 arrays of n numbers, ``P1``, ``P2`` float64 (n, n); ``W`` None or
+    (n, n) (parsed). The kernel checks the input as the validation does (finite, symmetric
+    within its tolerance, positive definite by its own Cholesky factorisation) and solves
+    the pair as :func:`optimal_pair` does. Returns ``(scalars, x, P, gains)`` (scalars as
+    ``compiled.ci_pair``'s: omega, iterations, gap, floor, computed gap, value, log value,
+    status), or None when the caller must take the full path: a failed check (the
+    validation raises its error) or an item the kernel hands back (the full path decides).
+    For the backends that run it (the caller asks :func:`single_ready` first). Nothing
+    given is modified (the kernel works on copies).
+    The factors are the kernel's, not LAPACK's, so the results may differ from the full
+    path's in the last bits.
+    """
+    n = P1.shape[0]
+    if not _single:
+        from .compiled import MODE_CHECK, MODE_GAINS, ci_pair_serial
+
+        _single.append((ci_pair_serial, MODE_CHECK | MODE_GAINS))
+    kernel, mode = _single[0]
+    x = np.concatenate((x1, x2), axis=None).reshape(1, 2, n)  # (new arrays)
+    P = np.concatenate((P1, P2)).reshape(1, 2, n, n)
+    Wk = _NO_W if W is None else _writable(W[None])
+    scalars, x_out, P_out, K_out = (np.empty((1, 8)), np.empty((1, n)), np.empty((1, n, n)),
+                                    np.empty((1, 2, n, n)))
+    _calls["kernels"] += 1
+    kernel(x, P, np.empty((1, 2, n, n)), Wk, _KINDS[kind], mode, scalars, x_out, P_out,
+           K_out)
+    if scalars[0, 7] != 0.0:
+        return None
+    return scalars[0], x_out[0], P_out[0], K_out[0]
+
+
+_shift: list = []  # (shift.shift_single,), once imported
+
+
+def _shifted_single(x, P, M, N, backward):
+    """One estimate brought by ``M``, ``N`` in one compiled call
+    (:func:`cifilter._kernels.shift.shift_single`): ``(x, P, alpha)`` (alpha None
+    forward), or None (a failed check, or arrays of other layouts: the caller then takes
+    the numpy path, which never compiles anything)."""
+    if not (P.flags.c_contiguous and P.flags.writeable and x.flags.c_contiguous
+            and x.flags.writeable):
+        return None
+    # (one compiled signature: read-only C-ordered M and N, as the StepMotion caches F^k
+    # and Q_k; its F^-k comes from LU in Fortran order)
+    if M.flags.writeable or not M.flags.c_contiguous:
+        M = np.ascontiguousarray(M)
+        M.flags.writeable = False
+    if N.flags.writeable or not N.flags.c_contiguous:
+        N = np.ascontiguousarray(N)
+        N.flags.writeable = False
+    if not _shift:
+        from .shift import shift_single
+
+        _shift.append(shift_single)
+    n = x.shape[0]
+    x_out, P_out = np.empty(n), np.empty((n, n))
+    status, alpha = _shift[0](x, P, M, N, backward, np.empty((n, n)), x_out, P_out)
+    if status:
+        return None
+    _calls["kernels"] += 1
+    return x_out, P_out, (alpha if backward else None)
+
+
+def shift_for(n):
+    """The compiled time shift of one estimate of dimension ``n`` for the front door's
+    short way of ``lag=`` (``shift(x, P, M, N, backward) -> (x, P, alpha) or None``), or
+    None where single calls stay on numpy (:func:`single_ready`)."""
+    return _shifted_single if single_ready(n) else None
 
 
 # The compiled solver of N >= 3 estimates runs the numpy path's active-set phase, which the

@@ -45,6 +45,7 @@ __all__ = [
     "added_to_reference",
     "align_estimates",
     "align_in_time",
+    "aligned_pair",
     "as_partial_estimates",
     "back_noise",
     "check_observation_matrices",
@@ -119,12 +120,16 @@ def check_observation_matrices(H: Any, count: int) -> Optional[tuple]:
             "estimate (None for an estimate of the full state)"
         )
     out: list[Any] = []
+    partial = False  # (some entry is a matrix)
     for i, entry in enumerate(H):
         if entry is None:
             out.append(None)
             continue
+        partial = True
         if (type(entry) is np.ndarray and entry.dtype == np.float64 and entry.ndim == 2
-                and 0 not in entry.shape and math.isfinite(float(entry.sum()))):
+                and entry.size and math.isfinite(sum(entry.ravel().tolist())
+                                                 if entry.size <= _SMALL * _SMALL
+                                                 else float(entry.sum()))):
             out.append(entry.copy())  # the usual matrix: the checks below pass; a copy
             continue
         matrix = as_float_array(entry, f"H[{i}]")
@@ -135,9 +140,7 @@ def check_observation_matrices(H: Any, count: int) -> Optional[tuple]:
         if not np.all(np.isfinite(matrix)):
             raise ValueError(f"H[{i}] contains non-finite values (NaN or inf)")
         out.append(matrix)
-    if all(entry is None for entry in out):
-        return None
-    return tuple(out)
+    return tuple(out) if partial else None
 
 
 class _Single(NamedTuple):
@@ -166,20 +169,35 @@ def _usual_single(x, P):
     m = P.shape[0]
     if m == 0 or P.shape != (m, m) or x.shape not in ((m,), (m, 1)):
         return None
-    if not math.isfinite(float(P.sum()) + float(x.sum())):
-        return None
-    P_T = P.T
-    if (P == P_T).all():
+    if m <= _SMALL:
+        # (Python floats: for a few entries, faster than numpy's reductions; the sum of
+        # the entries is finite only if every entry is)
+        values = P.ravel().tolist()
+        if not math.isfinite(sum(values) + sum(x.ravel().tolist())):
+            return None
+        symmetric = values == P.T.ravel().tolist()
+    else:
+        with np.errstate(invalid="ignore", over="ignore"):  # (inf - inf: not finite)
+            if not math.isfinite(float(P.sum()) + float(x.sum())):
+                return None
+        symmetric = bool((P == P.T).all())
+    if symmetric:
         P = P.copy()  # (0.5 (P + P^T) is P: the symmetrisation below, without its sums)
     else:
+        P_T = P.T
         asymmetry = float(np.abs(P - P_T).max())
         if asymmetry > SYMMETRY_RTOL * float(np.abs(P.diagonal()).max()):
             return None
         P = 0.5 * (P + P_T)
-    L = cholesky_single(P)
-    if L is None:
+    # (cholesky_single: LAPACK's factor, None unless it succeeds and is finite)
+    L, failed = lapack.dpotrf(P, lower=1, clean=1)
+    if failed or not math.isfinite(sum(L.diagonal().tolist())):
         return None
     return _Single(x.reshape(m).copy(), P, L, x.ndim == 2)
+
+
+# Below this dimension the cheap checks run on Python floats (a list of at most 64 entries).
+_SMALL = 8
 
 
 def _single(estimates):
@@ -200,38 +218,18 @@ def as_partial_estimates(pairs: list, H: tuple, labels: Optional[Sequence[str]] 
     count = len(pairs)
     validated = []
     for i, (x, P) in enumerate(pairs):
-        label = f"estimates[{i}]" if labels is None else labels[i]
         usual = _usual_single(x, P)
-        validated.append(usual if usual is not None else
-                         _single(as_estimates([x], [P], min_count=1, names=("x", "P"),
-                                              labels=(label,))))
-    where = [f"estimates[{i}]" if labels is None else labels[i] for i in range(count)]
-    dims = [est.dim for est in validated]
+        if usual is None:
+            label = f"estimates[{i}]" if labels is None else labels[i]
+            usual = _single(as_estimates([x], [P], min_count=1, names=("x", "P"),
+                                         labels=(label,)))
+        validated.append(usual)
+    dims = [est.x.shape[-1] for est in validated]
     full = [i for i in range(count) if H[i] is None]
-    if full:
-        n, source = dims[full[0]], f"{where[full[0]]} estimates the full state"
-    else:
-        first = next(i for i in range(count) if H[i] is not None)
-        n, source = H[first].shape[1], f"H[{first}] has {H[first].shape[1]} columns"
-    for i in range(count):
-        if H[i] is None:
-            if dims[i] != n:
-                raise ValueError(
-                    f"{where[i]}'s P is {dims[i]}x{dims[i]}, but the state has dimension {n} "
-                    f"({source}); an estimate of part of the state needs its H[{i}]"
-                )
-            continue
-        rows, columns = H[i].shape
-        if rows != dims[i]:
-            raise ValueError(
-                f"H[{i}] has shape {H[i].shape}, but {where[i]}'s P is {dims[i]}x{dims[i]}: "
-                f"estimate {i} estimates H[{i}] x, so H[{i}] needs {dims[i]} rows"
-            )
-        if columns != n:
-            raise ValueError(
-                f"H[{i}] has shape {H[i].shape}, but the state has dimension {n} ({source}); "
-                f"H[{i}] needs {n} columns"
-            )
+    n = dims[full[0]] if full else next(h for h in H if h is not None).shape[1]
+    if not all(dims[i] == n if H[i] is None else H[i].shape == (dims[i], n)
+               for i in range(count)):
+        _raise_dimensions(dims, H, n, full, labels)
     if all(est.x.ndim == 1 for est in validated):  # no batch axes: nothing to broadcast
         return PartialEstimates(tuple(est.x for est in validated),
                                 tuple(est.P for est in validated),
@@ -251,6 +249,35 @@ def as_partial_estimates(pairs: list, H: tuple, labels: Optional[Sequence[str]] 
     Ps = tuple(broadcast(est.P, 2) for est in validated)
     Ls = tuple(broadcast(est.L, 2) for est in validated)
     return PartialEstimates(xs, Ps, Ls, tuple(H), n, validated[0].column)
+
+
+def _raise_dimensions(dims, H, n, full, labels):
+    """The error for estimates whose dimensions do not match ``H`` and the state."""
+    where = [f"estimates[{i}]" if labels is None else labels[i] for i in range(len(dims))]
+    if full:
+        source = f"{where[full[0]]} estimates the full state"
+    else:
+        first = next(i for i in range(len(dims)) if H[i] is not None)
+        source = f"H[{first}] has {H[first].shape[1]} columns"
+    for i in range(len(dims)):
+        if H[i] is None:
+            if dims[i] != n:
+                raise ValueError(
+                    f"{where[i]}'s P is {dims[i]}x{dims[i]}, but the state has dimension {n} "
+                    f"({source}); an estimate of part of the state needs its H[{i}]"
+                )
+            continue
+        rows, columns = H[i].shape
+        if rows != dims[i]:
+            raise ValueError(
+                f"H[{i}] has shape {H[i].shape}, but {where[i]}'s P is {dims[i]}x{dims[i]}: "
+                f"estimate {i} estimates H[{i}] x, so H[{i}] needs {dims[i]} rows"
+            )
+        if columns != n:
+            raise ValueError(
+                f"H[{i}] has shape {H[i].shape}, but the state has dimension {n} ({source}); "
+                f"H[{i}] needs {n} columns"
+            )
 
 
 def unobserved_directions(G: np.ndarray, n_digits: int = 3) -> list:
@@ -640,6 +667,80 @@ def align_estimates(estimates: Estimates, times: Sequence[float], at: float,
             x[..., i, :], P[..., i, :, :], L[..., i, :, :] = x_i, P_i, L_i
         alpha[i] = alpha_i
     return tuple(alpha)
+
+
+# Entries of at least 2**1023 overflow when a covariance is symmetrised; the validation
+# refuses them, so the short way below leaves them to it.
+_LARGEST_ENTRY = 2.0 ** 1023
+
+
+def aligned_pair(pairs: Sequence[Any], times: Any, at: Any,
+                 motion: Optional[Callable[..., Any]],
+                 labels: Optional[Sequence[str]] = None,
+                 shift_for: Optional[Callable[[int], Any]] = None) -> Optional[tuple]:
+    """Two single estimates brought to one time the short way, or None.
+
+    The front door's ``times=`` for the commonest call, ``kf.fuse(other, lag=k)``: two
+    ``(x, P)`` pairs of float64 arrays (``P`` (n, n), ``x`` (n,) or (n, 1) alike). Each
+    estimate that moves is checked as the validation checks it (finite, entries below
+    ``2**1023``, and here *exactly* symmetric, factored by LAPACK) and brought to ``at`` by
+    the same steps as :func:`align_estimates` (:func:`predicted` or the retrodiction bound),
+    so its mean and covariance are bit for bit the usual path's. Returns ``(pairs, at,
+    alpha)`` with the brought pairs (the one that stays is passed on as given: the rule's
+    route checks it), ``at`` as :func:`check_times` gives it, and ``alpha`` per estimate
+    (None unless retrodicted). Anything else, and every failure, returns None, and the usual
+    path validates, aligns and explains its errors in its order.
+
+    ``shift_for(n)``, when given, may return a compiled ``shift(x, P, M, N, backward) ->
+    (x, P, alpha) or None`` that does the checks and the shift of one estimate in one call
+    (``M``, ``N``: a :class:`StepMotion`'s ``F^k``, ``Q_k`` forward or ``F^-k``,
+    ``F^-k Q_k F^-kT`` back); its results agree with the numpy steps to rounding.
+    """
+    try:
+        if len(pairs) != 2:
+            return None
+        (x0, P0), (x1, P1) = pairs
+        for a in (x0, P0, x1, P1):
+            if type(a) is not np.ndarray or a.dtype.char != "d":
+                return None
+        n = P0.shape[-1]
+        if (P0.shape != (n, n) or P1.shape != (n, n) or x1.shape != x0.shape
+                or x0.shape not in ((n,), (n, 1)) or n == 0):
+            return None
+        times, at = check_times(times, 2, at)
+        out: list = [pairs[0], pairs[1]]
+        alpha: list = [None, None]
+        steps = motion if type(motion) is StepMotion else None
+        shift = shift_for(n) if shift_for is not None and steps is not None else None
+        for i, t in enumerate(times):
+            if t == at:
+                continue
+            x, P = pairs[i]
+            if shift is not None and steps is not None:
+                dt = abs(at - t)
+                backward = t > at
+                M, N = (steps.back(dt, n, f"F of motion({dt!r})") if backward
+                        else steps.checked(dt, n))
+                done = shift(x.reshape(n), P, M, N, backward)
+                if done is None:
+                    return None
+                out[i], alpha[i] = (done[0].reshape(x.shape), done[1]), done[2]
+                continue
+            # Exact symmetry also fails for a NaN anywhere (NaN != NaN); an infinity makes
+            # LAPACK fail or the factor's trace infinite (cholesky_single's None). A finite
+            # trace below 2**1023 bounds every entry of a positive definite matrix by it.
+            # A non-finite x goes on to the route, whose check sends it the usual way.
+            if not (P == P.T).all():
+                return None
+            L = cholesky_single(P)
+            if L is None or not float(P.trace()) < _LARGEST_ENTRY:
+                return None
+            where = f"estimates[{i}]" if labels is None else labels[i]
+            x_i, P_i, alpha[i] = _brought(x.reshape(n), L, True, i, t, at, motion, n, where)
+            out[i] = (x_i.reshape(x.shape), P_i)
+        return out, at, tuple(alpha)
+    except (TypeError, ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return None
 
 
 def _brought(x, L, movable, i, t, at, motion, n, where):

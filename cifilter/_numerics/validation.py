@@ -246,8 +246,12 @@ def _symmetry_by_columns(flat, n):
 
 
 def _symmetrized(P):
-    """``(P + P^T) / 2`` (bitwise what :func:`symmetrize` gives), one temporary fewer."""
-    S = np.add(P, np.swapaxes(P, -1, -2))
+    """``(P + P^T) / 2`` (bitwise what :func:`symmetrize` gives), one temporary fewer.
+
+    Entries of at least ``2**1023`` overflow to infinity here, silently: the caller's
+    finiteness check then refuses the matrix with its message (no RuntimeWarning first)."""
+    with np.errstate(over="ignore"):
+        S = np.add(P, np.swapaxes(P, -1, -2))
     S *= 0.5
     return S
 

@@ -19,6 +19,12 @@ is singular have an infinite criterion, which the solver's line searches reject.
 
 The naive rule with ``H`` is the same fusion with all weights one (then ``P`` is the error
 covariance of the gains for independent errors).
+
+One full-state and one partial estimate (``kf.fuse(other, H=H)``) take the diagonalised
+pair path (:func:`_pair_single`, eqs. (H7)-(H8)); under the backends that run the compiled
+kernels its compiled twin (:mod:`cifilter._kernels.generalised`) answers it, and
+:func:`partial_pair_route` reaches that kernel from the raw arrays (the kernel checks them
+as the validation does), for the front door's ``H=`` without other options.
 """
 
 import math
@@ -27,6 +33,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 from scipy.linalg import lapack
 
+from .._kernels import background, dispatch
 from .._numerics.alignment import unobserved_directions
 from .._numerics.criteria import (
     GAP_TOL,
@@ -35,6 +42,7 @@ from .._numerics.criteria import (
     criterion_of_factor,
     criterion_report,
     criterion_value,
+    parse_criterion,
 )
 from .._numerics.information import (
     information_factors,
@@ -45,7 +53,8 @@ from .._numerics.information import (
 from .._numerics.linalg import ill_conditioned, lower_inverse_single, symmetrize
 from .._numerics.optimize import interval_gap, minimize_convex_scalar, minimize_convex_simplex
 from .._numerics.validation import check_weights, restore_style
-from ..result import FusionResult
+from ..backend import get_backend, numba_available
+from ..result import FusionResult, owned_result
 
 _EPS = float(np.finfo(float).eps)
 
@@ -56,6 +65,7 @@ __all__ = [
     "generalised_ci",
     "generalised_naive",
     "generalised_weights",
+    "partial_pair_route",
     "square_roots",
 ]
 
@@ -293,7 +303,10 @@ def _pair_single(est, kind, W):
     of these gains (eq. (H4)), checked finite and positive definite here (the conditioning
     contract; a failure goes the long way, whose check raises). Returns None where the
     diagonalisation is not trusted (spread of the nonzero ``mu`` or of the factors'
-    diagonals above 1e6, as for full states); the simplex path decides there.
+    diagonals above 1e6, as for full states); the simplex path decides there. Where the
+    backend runs the kernels (:func:`_kernel_allowed`) the compiled twin of this path
+    (:func:`cifilter._kernels.generalised.partial_pair`, on the validated factors) answers
+    first; it returns None where it does not decide, and this path runs.
     """
     Hs = est.H
     if len(Hs) != 2 or est.x[0].ndim != 1 or (Hs[0] is None) == (Hs[1] is None):
@@ -302,6 +315,14 @@ def _pair_single(est, kind, W):
     b = 1 - a
     n = est.dim
     La, Lb, H = est.L[a], est.L[b], Hs[b]
+    if _kernel_allowed(n):
+        compiled = _compiled_pair()(est.x[a], est.P[a], est.x[b], est.P[b], H, kind, W,
+                                    (La, Lb))
+        if compiled is not None:
+            x, P, w, info = compiled
+            Ka, Kb = info.pop("gains")
+            weights = np.array((w, 1.0 - w) if a == 0 else (1.0 - w, w))
+            return weights, info, (x, P, (Ka, Kb) if a == 0 else (Kb, Ka))
     # (ndarray.dot, not @: the same BLAS calls, bitwise, with less overhead on small arrays)
     Lb_inv = lower_inverse_single(Lb)
     V, s, Ut, failed = lapack.dgesdd(Lb_inv.dot(H).dot(La), compute_uv=1, full_matrices=1)
@@ -370,6 +391,115 @@ def _pair_single(est, kind, W):
             "gap": np.array(gap), "solver": "diagonalise"}
     info.update(report)
     return weights, info, (x, P, gains)
+
+
+def partial_pair_route(pairs: Any, H: tuple, options: Any) -> Optional[FusionResult]:
+    """The ``"ci"`` rule's route for ``kf.fuse(other, H=H)``: one compiled call from the
+    raw arrays to the result, or None (the usual route: validation, then
+    :func:`generalised_ci`).
+
+    Taken for two single ``(x, P)`` pairs of float64 arrays (``x`` (m,) or (m, 1)), one
+    of the full state (its ``H`` entry None) and one of ``H x`` (``H`` (m, n) with
+    ``m <= n``, as checked by
+    :func:`cifilter._numerics.alignment.check_observation_matrices`), with no option but
+    ``criterion`` (optimal weights), when the backend runs the kernel
+    (:func:`_kernel_allowed`). The covariances are factored by LAPACK as given and the
+    kernel checks the rest as the validation does; any failed check, a covariance that is
+    not exactly symmetric (the validation symmetrises it) and any problem the kernel does
+    not decide return None, and the usual route validates (raising its error) and solves.
+    Where the route answers, its result is the usual route's bit for bit (the same factors,
+    kernel, certificate and ``info``).
+    """
+    backend = get_backend()
+    if backend == "numpy":
+        return None
+    if options:
+        if len(options) != 1 or "criterion" not in options:
+            return None
+        criterion = options["criterion"]
+    else:
+        criterion = "trace"
+    if len(pairs) != 2 or len(H) != 2 or (H[0] is None) == (H[1] is None):
+        return None
+    a = 0 if H[0] is None else 1
+    b = 1 - a
+    (xa, Pa), (xb, Pb) = pairs[a], pairs[b]
+    Hb = H[b]
+    if not (type(xa) is np.ndarray and type(Pa) is np.ndarray and type(xb) is np.ndarray
+            and type(Pb) is np.ndarray and type(Hb) is np.ndarray):
+        return None
+    if (Pa.dtype.char != "d" or Pb.dtype.char != "d" or xa.dtype.char != "d"
+            or xb.dtype.char != "d" or Hb.dtype.char != "d" or Pa.ndim != 2 or Pb.ndim != 2):
+        return None
+    n, m = Pa.shape[0], Pb.shape[0]
+    if (Pa.shape != (n, n) or Pb.shape != (m, m) or Hb.shape != (m, n) or m == 0 or m > n
+            or xa.shape not in ((n,), (n, 1)) or xb.shape not in ((m,), (m, 1))):
+        return None
+    if type(criterion) is str and criterion in ("trace", "det"):
+        kind, W = criterion, None
+    else:
+        try:
+            kind, W = parse_criterion(criterion, n)
+        except (TypeError, ValueError):
+            return None  # (the usual route raises it, after the estimates' errors)
+    if not _kernel_allowed(n, backend):
+        return None
+    # (LAPACK's factors of the covariances as given, as the validation takes them: the
+    # kernel checks the rest, and an answer is the usual route's bit for bit)
+    La, failed = lapack.dpotrf(Pa, lower=1, clean=1)
+    if failed:
+        return None
+    Lb, failed = lapack.dpotrf(Pb, lower=1, clean=1)
+    if failed:
+        return None
+    compiled = _compiled_pair()(xa.reshape(n), Pa, xb.reshape(m), Pb, Hb, kind, W,
+                                (La, Lb), check=True)
+    if compiled is None:
+        return None
+    x, P, w, solver_info = compiled
+    Ka, Kb = solver_info.pop("gains")
+    weights = np.array((w, 1.0 - w) if a == 0 else (1.0 - w, w))
+    info: dict[str, Any] = {"criterion": kind, "rule": "optimal"}
+    info.update(solver_info)
+    info["gains"] = (Ka, Kb) if a == 0 else (Kb, Ka)
+    return _owned(x, P, weights, info, pairs[0][0].ndim == 2)
+
+
+def _owned(x, P, weights, info, column):
+    """The result of the pair (arrays of its own, nobody else holds them: frozen in place,
+    the gains in ``info`` too; equal to ``FusionResult(x, P, "ci", weights, None, info)``)."""
+    for K in info["gains"]:
+        K.setflags(write=False)
+    return owned_result(restore_style(x, column), P, "ci", weights, None, info)
+
+
+def _compiled_pair():
+    """:func:`cifilter._kernels.generalised.partial_pair`, imported on first use (importing
+    cifilter never imports numba)."""
+    if not _COMPILED:
+        from .._kernels.generalised import partial_pair
+
+        _COMPILED.append(partial_pair)
+    return _COMPILED[0]
+
+
+_COMPILED: list = []
+
+
+def _kernel_allowed(n, name=None):
+    """Whether a single pair of dimension ``n`` runs on the compiled kernel
+    (:func:`cifilter._kernels.generalised.partial_pair`), as single calls of the CI kernels
+    do: under ``"numba"`` when numba is installed (compiled on first use, as every kernel
+    there); under ``"auto"`` for ``n <= AUTO_MAX_DIM`` once the kernels are there
+    (:func:`cifilter._kernels.background.status`: compiled or loaded in this process) and
+    only when their compilation includes this kernel, so that a single call never starts
+    or waits for a compile. ``name``: the backend, when the caller has it."""
+    if name is None:
+        name = get_backend()
+    if name == "numba":
+        return numba_available()
+    return (name == "auto" and n <= dispatch.AUTO_MAX_DIM
+            and "generalised_pair" in background.KERNELS and background.status()["ready"])
 
 
 def _trace_derivative(terms):
@@ -493,8 +623,7 @@ def generalised_ci(est: Any, kind: str, W: Optional[np.ndarray], omega: Any = No
             weights, solver_info, (x, P, gains) = single
             info.update(rule="optimal", **solver_info)  # (its report: P checked)
             info["gains"] = gains
-            return FusionResult(restore_style(x, est.column), P, "ci", weights, None, info,
-                                weights=weights)
+            return _owned(x, P, weights, info, est.column)  # (new arrays, all of them)
     roots = square_roots(est)
     check_observable(est, roots)
     if omega is None:

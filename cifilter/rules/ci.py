@@ -16,13 +16,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._kernels import dispatch as kernels
-from .._numerics.alignment import PartialEstimates
-from .._numerics.criteria import criterion_report, parse_criterion
+from .._numerics.alignment import PartialEstimates, aligned_pair
+from .._numerics.criteria import criterion_report, gap_converged, parse_criterion
 from .._numerics.information import weighted_fusion
 from .._numerics.validation import as_covariances, as_estimates, check_weights, restore_style
-from ..result import FusionResult
+from ..result import FusionResult, owned_result
+from ._ci_lean import lean_pair
 from ._ci_weights import FAST_OMEGA_RULES, optimal_weights
-from ._generalised_ci import generalised_ci
+from ._generalised_ci import generalised_ci, partial_pair_route
 
 __all__ = ["FAST_OMEGA_RULES", "ci_weights", "covariance_intersection"]
 
@@ -178,8 +179,65 @@ def covariance_intersection(xs: ArrayLike, Ps: ArrayLike,
     >>> np.diag(r.gains[0]).round(6).tolist()
     [0.8, 0.2]
     """
+    if omega is None:  # the routes of the common calls, as fuse() takes them
+        if (isinstance(xs, (list, tuple)) and isinstance(Ps, (list, tuple)) and len(xs) == 2
+                and len(Ps) == 2):
+            fast = _fuse_pair(((xs[0], Ps[0]), (xs[1], Ps[1])),
+                              {"criterion": criterion})
+        else:
+            fast = _checked_pairs(xs, Ps, criterion)
+        if fast is not None:
+            return fast
     est = as_estimates(xs, Ps)
     return _covariance_intersection(est, criterion, omega)
+
+
+def _parsed(criterion, n):
+    """``parse_criterion``'s answer, or None where it raises (the usual route raises it,
+    after the validation of the estimates, whose errors come first)."""
+    if type(criterion) is str and criterion in ("trace", "det"):
+        return criterion, None
+    try:
+        return parse_criterion(criterion, n)
+    except (TypeError, ValueError):
+        return None
+
+
+def _checked_pairs(xs, Ps, criterion):
+    """Optimal CI of a batch of pairs given as float64 arrays ``xs`` (..., 2, n) or
+    (..., 2, n, 1) and ``Ps`` (..., 2, n, n), with the validation folded into the kernel's
+    pass (:func:`cifilter._kernels.dispatch.pair_checked`); None where the usual route
+    runs (the numpy backend, other input, any item that fails a check: the validation then
+    raises its error). The result is the usual route's under the numba backend up to the
+    rounding of the Cholesky factors (the kernel's own here, LAPACK's there)."""
+    if not (type(xs) is np.ndarray and type(Ps) is np.ndarray and Ps.dtype.char == "d"
+            and xs.dtype.char == "d"):
+        return None
+    shape = Ps.shape
+    if len(shape) < 4 or shape[-3] != 2 or shape[-1] != shape[-2] or Ps.size == 0:
+        return None
+    if xs.shape == shape[:-1]:
+        column = False
+    elif xs.shape == shape[:-1] + (1,):
+        column = True
+    else:
+        return None
+    parsed = _parsed(criterion, shape[-1])
+    if parsed is None:
+        return None
+    kind, W = parsed
+
+    def numpy_path(sub, sub_W):
+        return optimal_weights(sub, kind, sub_W, compiled=False)
+
+    solved = kernels.pair_checked(xs, Ps, column, kind, W, numpy_path)
+    if solved is None:
+        return None
+    weights, solver_info, (x, P, gains), report = solved
+    info = {"criterion": kind, "rule": "optimal"}
+    info.update(solver_info)
+    info.update(report)
+    return FusionResult(restore_style(x, column), P, "ci", weights, gains, info)
 
 
 def _covariance_intersection(est, criterion="trace", omega=None):
@@ -220,6 +278,113 @@ def _covariance_intersection(est, criterion="trace", omega=None):
     return FusionResult(restore_style(x, est.column), P, "ci", weights, gains, info)
 
 
+def _fuse_pair(pairs, options, H=None, times=None):
+    """The ``"ci"`` rule's route for two single estimates (the record's ``pair``): one
+    compiled call from the raw arrays to the result, or None (the usual route).
+
+    Taken for two ``(x, P)`` pairs of float64 arrays, ``P`` (n, n) and ``x`` (n,) or
+    (n, 1) alike, with no option but ``criterion`` (optimal weights): one compiled call
+    when the backend runs the kernels for single calls
+    (:func:`cifilter._kernels.dispatch.single_ready`), else LAPACK directly
+    (:func:`cifilter.rules._ci_lean.lean_pair`: omega and its certificate bit for bit the
+    numpy path's, ``x`` and ``P`` to rounding); pairs of batches of one shape (..., n, n)
+    take :func:`_checked_pairs`.
+    ``H`` (checked observation matrices) sends the pair to generalised CI's route;
+    ``times`` (``(times, at, motion, labels)`` of the front door's ``times=``) first brings
+    the pair to one time the short way (:func:`cifilter._numerics.alignment.aligned_pair`,
+    its shift compiled where single calls run on the kernels) and adds the front door's
+    ``at`` and ``retrodiction_alpha`` to ``info``.
+    The kernel checks the input as the validation does; any failed check, and any pair the
+    kernel hands back, returns None, and the usual route validates (raising its error) and
+    solves. The result is the usual route's under the numba backend (the same kernel, the
+    same certificate and ``info``), up to the rounding of the Cholesky factors (the
+    kernel's own here, LAPACK's there).
+    """
+    if H is not None:  # kf.fuse(other, H=H): generalised CI's compiled pair
+        return partial_pair_route(pairs, H, options)
+    extra = None
+    if times is not None:  # kf.fuse(other, lag=k)
+        aligned = aligned_pair(pairs, *times, kernels.shift_for)
+        if aligned is None:
+            return None
+        pairs, extra = aligned[0], {"at": aligned[1], "retrodiction_alpha": aligned[2]}
+    if options:
+        if len(options) != 1 or "criterion" not in options:
+            return None
+        criterion = options["criterion"]
+    else:
+        criterion = "trace"
+    (x1, P1), (x2, P2) = pairs
+    if not (type(P1) is np.ndarray and type(P2) is np.ndarray and type(x1) is np.ndarray
+            and type(x2) is np.ndarray):
+        return None
+    shape, x_shape = P1.shape, x1.shape
+    if (len(shape) < 2 or shape[-1] != shape[-2] or P2.shape != shape
+            or x2.shape != x_shape or P1.dtype.char != "d" or P2.dtype.char != "d"
+            or x1.dtype.char != "d" or x2.dtype.char != "d"):
+        return None
+    if len(shape) > 2:  # batches: the batched route, on the stacked arrays
+        if extra:
+            return None
+        if x_shape == shape[:-1]:
+            xs = np.stack((x1, x2), axis=-2)
+        elif x_shape == shape[:-1] + (1,):
+            xs = np.stack((x1, x2), axis=-3)
+        else:
+            return None
+        return _checked_pairs(xs, np.stack((P1, P2), axis=-3), criterion)
+    n = shape[0]
+    if x_shape == (n,):
+        column = False
+    elif x_shape == (n, 1):
+        column = True
+    else:
+        return None
+    if n == 0:
+        return None
+    parsed = _parsed(criterion, n)
+    if parsed is None or (parsed[1] is not None and parsed[1].ndim != 2):
+        return None  # (a batch of criterion matrices makes a batch of problems)
+    kind, W = parsed
+    if not kernels.single_ready(n):
+        # the numpy backend (and "auto" before the kernels are there): one pair through
+        # LAPACK directly (rules/_ci_lean.py), or the usual route where it declines
+        lean = lean_pair(x1.reshape(n), np.ascontiguousarray(P1), x2.reshape(n),
+                         np.ascontiguousarray(P2), kind, W, gains=True)
+        if lean is None:
+            return None
+        x, P, weights, info, gains = lean
+        if extra:
+            info.update(_owned_extra(extra))
+        return owned_result(x[:, None] if column else x, P, "ci", weights, gains, info)
+    solved = kernels.pair_single(x1, P1, x2, P2, kind, W)
+    if solved is None:
+        return None
+    scalars, x, P, gains = solved
+    omega = float(scalars[0])
+    gap, floor, computed = float(scalars[2]), float(scalars[3]), float(scalars[4])
+    info = {"criterion": kind, "rule": "optimal", "iterations": np.array(int(scalars[1])),
+            "converged": np.array(gap_converged(gap, floor, computed)),
+            "gap": np.array(gap), "gap_floor": np.array(floor), "solver": "diagonalise",
+            "value": np.array(scalars[5])}
+    if kind == "det":
+        info["log_value"] = np.array(scalars[6])
+    if extra:
+        info.update(_owned_extra(extra))
+    return owned_result(x[:, None] if column else x, P, "ci", np.array([omega, 1.0 - omega]),
+                        gains, info)
+
+
+def _owned_extra(extra):
+    """The front door's additions to a route's ``info`` (``at``, ``retrodiction_alpha``:
+    numbers, None and the alignment's fresh arrays), frozen for :func:`owned_result`."""
+    for value in extra.values():
+        for item in (value if type(value) is tuple else (value,)):
+            if type(item) is np.ndarray:
+                item.setflags(write=False)
+    return extra
+
+
 REGISTRATION: dict[str, Any] = dict(
     name="ci",
     function=covariance_intersection,
@@ -229,6 +394,7 @@ REGISTRATION: dict[str, Any] = dict(
     guarantee="bound",
     weights="omega, on the simplex: P^-1 = sum_i omega_i P_i^-1",
     front_door=("H", "residual", "times"),
+    pair=_fuse_pair,
 )
 """The record of the ``"ci"`` rule (registered by :mod:`cifilter.rules`).
 

@@ -73,9 +73,9 @@ def covariance_union(xs: ArrayLike, Ps: ArrayLike, criterion: str = "trace",
         ``P``; for ``"det"`` also ``log_value``), ``rule`` (``"optimal"``,
         ``"candidates"`` or ``"fixed"``), ``optimal_covariance`` (True for two estimates:
         ``P`` is the smallest bound for ``x``) and, for the optimal mean of two estimates,
-        ``iterations`` (for the trace, with the Newton steps of the smoothed continuation
-        that finishes problems the iteration has not certified after 10 iterations or on
-        which it progresses slowly), ``smoothed`` (True where that continuation finished
+        ``iterations`` (for the trace, the Newton steps of the smoothed continuation that
+        solves every problem not certified at its starting mean, with the kink's Newton
+        steps that end it early), ``smoothed`` (True where that continuation finished
         the problem), ``converged`` and ``gap`` (trace: certified relative excess of the
         criterion over its minimum over all means; NaN for det).
 
