@@ -36,8 +36,10 @@ AUTO_MIN_BATCH = 8
 """Under ``"auto"``, batches of at least this many problems go to the compiled kernels.
 
 Measured (``docs/backend.rst``): the kernels are faster than numpy for every batch of 4x4
-pairs from 4 problems up; single fusions (no batch axes) stay on numpy under ``"auto"``, so
-that a filter's ``fuse`` never imports numba or waits for a compile."""
+pairs from 4 problems up. Single fusions of two estimates (no batch axes) take the rule's
+short route instead: one compiled call once the kernels are compiled or in numba's cache
+(loaded at most once per process, never compiled there), LAPACK directly before that, so a
+filter's ``fuse`` never waits for a compile."""
 
 
 
