@@ -28,6 +28,7 @@ from .._numerics.criteria import GAP_TOL, gap_converged, slope_rounding_single
 from .._numerics.information import DIAGONAL_TRUST
 from .._numerics.optimize import interval_gap, minimize_convex_scalar
 from .._numerics.validation import SYMMETRY_RTOL
+from ._ci_weights import pair_derivative
 
 __all__ = ["lean_pair"]
 
@@ -188,7 +189,7 @@ def _lean_pair(x1, P1, x2, P2, kind, W, with_gains):
         else:
             c = np.einsum("ik,ij,jk->k", T, W, T).tolist()
         scale = sum([ck * (ak + 1.0) for ck, ak in zip(c, a)]) + sum(c)
-    derivative = _derivative(a, c)
+    derivative = pair_derivative(a, c, kind)
     sigma = max(lam_list[-1], float(_vdot(L1_inv, L1_inv)) * math.sqrt(float(_vdot(S2, S2))))
     if (abs(derivative(0.0)[0]) <= slope_rounding_single(lam_list, 0.0, c, sigma)
             and abs(derivative(1.0)[0]) <= slope_rounding_single(lam_list, 1.0, c, sigma)):
@@ -274,28 +275,3 @@ def _identity(n):
         identity.flags.writeable = False
         _IDENTITIES[n] = identity
     return identity
-
-
-def _derivative(a, c):
-    """``f'`` and ``f''`` of the diagonalised criterion at a float omega (Python floats;
-    ``a = lam - 1``, ``c`` None for det), as the numpy path evaluates them."""
-    if c is None:
-        def derivative(omega):
-            g = h = 0.0
-            for ak in a:
-                ratio = ak / (1.0 + omega * ak)
-                g -= ratio
-                h += ratio * ratio
-            return g, h
-        return derivative
-    ca = [ck * (ak + 1.0) * ak for ck, ak in zip(c, a)]
-
-    def derivative(omega):
-        g = h = 0.0
-        for cak, ak in zip(ca, a):
-            den = 1.0 + omega * ak
-            term = cak / (den * den)
-            g -= term
-            h += term * ak / den
-        return g, 2.0 * h
-    return derivative

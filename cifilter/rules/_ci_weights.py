@@ -52,7 +52,7 @@ from .._numerics.optimize import (
     minimize_convex_simplex,
 )
 
-__all__ = ["FAST_OMEGA_RULES", "optimal_weights"]
+__all__ = ["FAST_OMEGA_RULES", "optimal_weights", "pair_derivative"]
 
 
 def _fast_weights(est):
@@ -316,7 +316,7 @@ def _simplex_weights(L_inv, kind, W, count, shape):
     return weights, iterations
 
 
-def _pair_derivative(a, c, kind):
+def pair_derivative(a, c, kind):
     """``f'`` and ``f''`` of the diagonalised two-estimate criterion at a float omega, in
     Python floats (:func:`_diagonalised_weights` for one problem; ``a = lam - 1``)."""
     if kind == "det":
@@ -380,7 +380,7 @@ def _single_pair(est, kind, W):
         c = (np.square(T).sum(axis=0) if kind == "trace"
              else np.einsum("ik,ij,jk->k", T, W, T)).tolist()
         scale = sum(ck * (ak + 1.0) for ck, ak in zip(c, a)) + sum(c)
-    derivative = _pair_derivative(a, c, kind)
+    derivative = pair_derivative(a, c, kind)
     inverse, covariance = L1_inv.ravel(), est.P[1].ravel()
     with np.errstate(over="ignore", under="ignore"):
         spread = float(inverse @ inverse) * math.sqrt(float(covariance @ covariance))
