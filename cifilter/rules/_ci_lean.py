@@ -28,7 +28,7 @@ from .._numerics.criteria import GAP_TOL, gap_converged, slope_rounding_single
 from .._numerics.information import DIAGONAL_TRUST
 from .._numerics.optimize import interval_gap, minimize_convex_scalar
 from .._numerics.validation import SYMMETRY_RTOL
-from ._ci_weights import pair_derivative
+from ._ci_weights import cached_identity, pair_derivative
 
 __all__ = ["lean_pair"]
 
@@ -225,17 +225,17 @@ def _lean_pair(x1, P1, x2, P2, kind, W, with_gains):
         G *= [1.0 / math.sqrt(omega)] * n + [1.0 / math.sqrt(1.0 - omega)] * n
         P = G.dot(G.T)
         if with_gains:
-            np.subtract(_identity(n), K1, out=K[1])
+            np.subtract(cached_identity(n), K1, out=K[1])
     elif omega == 1.0:  # K_1 = I, K_2 = 0
         x = x2 + (x1 - x2)
         P = L1.dot(L1.T)
         if with_gains:
-            K[0], K[1] = _identity(n), 0.0
+            K[0], K[1] = cached_identity(n), 0.0
     else:  # K_1 = 0, K_2 = I
         x = x2 + 0.0 * (x1 - x2)
         P = L2.dot(L2.T)
         if with_gains:
-            K[0], K[1] = 0.0, _identity(n)
+            K[0], K[1] = 0.0, cached_identity(n)
     # the criterion report: P numerically positive definite, the criterion's value
     R, info = _dpotrf(P, lower=1, clean=1)
     if info:
@@ -262,16 +262,3 @@ def _lean_pair(x1, P1, x2, P2, kind, W, with_gains):
     if with_gains:
         return x, P, np.array([omega, 1.0 - omega]), out, K
     return x, P, np.array([omega, 1.0 - omega]), out
-
-
-_IDENTITIES: dict[int, NDArray[np.float64]] = {}
-
-
-def _identity(n):
-    """A cached read-only identity matrix."""
-    identity = _IDENTITIES.get(n)
-    if identity is None:
-        identity = np.eye(n)
-        identity.flags.writeable = False
-        _IDENTITIES[n] = identity
-    return identity

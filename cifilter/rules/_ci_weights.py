@@ -52,7 +52,7 @@ from .._numerics.optimize import (
     minimize_convex_simplex,
 )
 
-__all__ = ["FAST_OMEGA_RULES", "optimal_weights", "pair_derivative"]
+__all__ = ["FAST_OMEGA_RULES", "cached_identity", "optimal_weights", "pair_derivative"]
 
 
 def _fast_weights(est):
@@ -344,7 +344,7 @@ def pair_derivative(a, c, kind):
 _IDENTITIES: dict[int, NDArray[np.float64]] = {}
 
 
-def _identity(n):
+def cached_identity(n):
     """A cached read-only identity matrix (the single-call path builds one per call)."""
     identity = _IDENTITIES.get(n)
     if identity is None:
@@ -404,13 +404,13 @@ def _single_pair(est, kind, W):
     n = len(a)
     gains = np.empty((2, n, n))
     if omega == 1.0:
-        gains[0] = _identity(n)
+        gains[0] = cached_identity(n)
     else:
         e = [value / (1.0 + omega * ak) for value, ak in zip(lam_list, a)]
         np.matmul(T * e, U.T @ L1_inv, out=gains[0])
         gains[0] *= omega
     K1 = gains[0]
-    np.subtract(_identity(n), K1, out=gains[1])
+    np.subtract(cached_identity(n), K1, out=gains[1])
     if omega == 0.0:
         M = gains[1] @ L2
         P = M @ M.T

@@ -33,7 +33,7 @@ from typing import Any, NamedTuple, Optional
 import numpy as np
 from scipy.linalg import lapack
 
-from .._kernels import background, dispatch
+from .._kernels import dispatch
 from .._numerics.alignment import unobserved_directions
 from .._numerics.criteria import (
     GAP_TOL,
@@ -53,7 +53,7 @@ from .._numerics.information import (
 from .._numerics.linalg import ill_conditioned, lower_inverse_single, symmetrize
 from .._numerics.optimize import interval_gap, minimize_convex_scalar, minimize_convex_simplex
 from .._numerics.validation import check_weights, restore_style
-from ..backend import get_backend, numba_available
+from ..backend import get_backend
 from ..result import FusionResult, owned_result
 
 _EPS = float(np.finfo(float).eps)
@@ -410,8 +410,7 @@ def partial_pair_route(pairs: Any, H: tuple, options: Any) -> Optional[FusionRes
     Where the route answers, its result is the usual route's bit for bit (the same factors,
     kernel, certificate and ``info``).
     """
-    backend = get_backend()
-    if backend == "numpy":
+    if get_backend() == "numpy":
         return None
     if options:
         if len(options) != 1 or "criterion" not in options:
@@ -442,7 +441,7 @@ def partial_pair_route(pairs: Any, H: tuple, options: Any) -> Optional[FusionRes
             kind, W = parse_criterion(criterion, n)
         except (TypeError, ValueError):
             return None  # (the usual route raises it, after the estimates' errors)
-    if not _kernel_allowed(n, backend):
+    if not _kernel_allowed(n):
         return None
     # (LAPACK's factors of the covariances as given, as the validation takes them: the
     # kernel checks the rest, and an answer is the usual route's bit for bit)
@@ -486,20 +485,13 @@ def _compiled_pair():
 _COMPILED: list = []
 
 
-def _kernel_allowed(n, name=None):
+def _kernel_allowed(n):
     """Whether a single pair of dimension ``n`` runs on the compiled kernel
-    (:func:`cifilter._kernels.generalised.partial_pair`), as single calls of the CI kernels
-    do: under ``"numba"`` when numba is installed (compiled on first use, as every kernel
-    there); under ``"auto"`` for ``n <= AUTO_MAX_DIM`` once the kernels are there
-    (:func:`cifilter._kernels.background.status`: compiled or loaded in this process) and
-    only when their compilation includes this kernel, so that a single call never starts
-    or waits for a compile. ``name``: the backend, when the caller has it."""
-    if name is None:
-        name = get_backend()
-    if name == "numba":
-        return numba_available()
-    return (name == "auto" and n <= dispatch.AUTO_MAX_DIM
-            and "generalised_pair" in background.KERNELS and background.status()["ready"])
+    (:func:`cifilter._kernels.generalised.partial_pair`): where single calls of the CI
+    kernels do (:func:`cifilter._kernels.dispatch.single_ready`; under ``"auto"`` once the
+    kernels, this one among them, are compiled or in numba's cache: a single call never
+    starts or waits for a compile)."""
+    return dispatch.single_ready(n)
 
 
 def _trace_derivative(terms):

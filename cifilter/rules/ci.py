@@ -302,18 +302,18 @@ def _fuse_pair(pairs, options, H=None, times=None):
     """
     if H is not None:  # kf.fuse(other, H=H): generalised CI's compiled pair
         return partial_pair_route(pairs, H, options)
-    extra = None
-    if times is not None:  # kf.fuse(other, lag=k)
-        aligned = aligned_pair(pairs, *times, kernels.shift_for)
-        if aligned is None:
-            return None
-        pairs, extra = aligned[0], {"at": aligned[1], "retrodiction_alpha": aligned[2]}
     if options:
         if len(options) != 1 or "criterion" not in options:
             return None
         criterion = options["criterion"]
     else:
         criterion = "trace"
+    extra = None
+    if times is not None:  # kf.fuse(other, lag=k): (after the options: no wasted shift)
+        aligned = aligned_pair(pairs, *times, kernels.shift_for)
+        if aligned is None:
+            return None
+        pairs, extra = aligned[0], {"at": aligned[1], "retrodiction_alpha": aligned[2]}
     (x1, P1), (x2, P2) = pairs
     if not (type(P1) is np.ndarray and type(P2) is np.ndarray and type(x1) is np.ndarray
             and type(x2) is np.ndarray):
