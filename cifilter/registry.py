@@ -124,7 +124,8 @@ class FusionMethod:
         and the rule's options, without front-door options but ``H=`` (then ``H`` holds the
         checked observation matrices, one per pair, None for the full state) or ``times=``
         (then ``times`` is ``(times, at, motion, labels)`` as given to :func:`fuse`, for
-        :func:`cifilter._numerics.alignment.aligned_pair`, and the result's ``info`` has
+        :func:`cifilter._numerics.alignment.aligned_pair` or
+        :func:`~cifilter._numerics.alignment.pair_step`, and the result's ``info`` has
         the front door's ``at`` and ``retrodiction_alpha``). :func:`fuse` tries
         it first; None sends the call the usual way (which validates and explains any
         error), so the route must give the usual way's result whenever it answers (for
@@ -675,8 +676,9 @@ def fuse_estimates(estimates: Sequence[Any], method: str, options: Mapping[str, 
             raise _front_door_refusal(record, "times")
         if record.pair is not None and len(pairs) == 2:
             # the rule's short way of two single estimates (kf.fuse(other, lag=k)): the
-            # moved one checked and brought as below (alignment.aligned_pair), the other
-            # and the options checked by the route (None for anything else: see below)
+            # moved one checked and brought as below (alignment.aligned_pair, or pair_step
+            # and a compiled call), the other and the options checked by the route (None
+            # for anything else: see below)
             result = record.pair(pairs, options, times=(times, at, motion, labels))
             if result is not None:
                 return result

@@ -108,7 +108,7 @@ def test_first_auto_call_uses_numpy_and_after_compile_a_new_process_uses_the_ker
     assert done.returncode == 0, done.stderr
     for name in ("ci_pair", "ci_pair_serial", "weighted_fusion",
                  "weighted_fusion_serial", "ci_many_optimal", "ci_many_optimal_serial",
-                 "generalised_pair", "shift_single"):
+                 "generalised_pair", "shifted_pair"):
         assert name in done.stdout
     assert "8 kernels ready in" in done.stdout
 
@@ -128,6 +128,19 @@ def test_first_auto_call_uses_numpy_and_after_compile_a_new_process_uses_the_ker
     np.testing.assert_allclose(a["omega"], b["omega"], rtol=0, atol=1e-9)
     scale = np.abs(a["P"]).max(axis=(-2, -1), keepdims=True)
     assert (np.abs(a["P"] - b["P"]) <= 1e-9 * scale).all()
+
+    # 5. one kernel missing from the cache (a process stopped while it compiled) compiles
+    # next to the ones loaded from it: numba cannot link a kernel loaded from its cache
+    # into a function compiled afresh, so no kernel calls another kernel
+    missing = sorted(cache.rglob("*shifted_pair*"))
+    assert missing
+    for path in missing:
+        path.unlink()
+    again = _run(["-m", "cifilter", "compile"], cache)
+    assert again.returncode == 0, again.stderr
+    assert "8 kernels ready in" in again.stdout
+    assert [line.split()[1] for line in again.stdout.splitlines()
+            if line.startswith("shifted_pair ")] == ["compiled"]
 
 
 def test_compile_without_numba_is_a_one_line_error(tmp_path):

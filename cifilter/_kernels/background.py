@@ -29,7 +29,7 @@ __all__ = ["KERNELS", "compile_all", "loaded", "ready", "status"]
 
 KERNELS = ("ci_pair", "ci_pair_serial", "weighted_fusion",
            "weighted_fusion_serial", "ci_many_optimal", "ci_many_optimal_serial",
-           "generalised_pair", "shift_single")
+           "generalised_pair", "shifted_pair")
 """The kernels the dispatch calls (each compiled for one signature)."""
 
 _lock = threading.Lock()
@@ -49,11 +49,12 @@ def _arguments(name: str) -> tuple:
         x2, P2, L2 = np.zeros((size, 2, n)), np.stack([P, P], axis=1), np.stack([L, L], axis=1)
         return (x2, P2, L2, W, 0, 0, np.empty((size, 8)), np.empty((size, n)),
                 np.empty((size, n, n)), np.empty((size, 2, n, n)))
-    if name == "shift_single":  # (dispatch._shifted_single's: M, N read-only)
+    if name == "shifted_pair":  # (dispatch.shifted_pair_single's: M, N read-only)
         M, N = eye[0].copy(), eye[0].copy()
         M.flags.writeable = N.flags.writeable = False
-        return (np.zeros(n), eye[0].copy(), M, N, True, np.empty((n, n)), np.empty(n),
-                np.empty((n, n)))
+        x2, P2 = np.zeros((size, 2, n)), np.stack([P, P], axis=1)
+        return (x2, P2, 0, M, N, True, W, 0, 0, np.empty((size, 8)), np.empty((size, n)),
+                np.empty((size, n, n)), np.empty((size, 2, n, n)))
     if name == "generalised_pair":  # (_kernels.generalised.partial_pair's arguments)
         xb, Pb = np.zeros(1), np.eye(1)
         return (np.zeros(n), eye[0].copy(), eye[0].copy(), xb, Pb, Pb.copy(),
@@ -84,10 +85,6 @@ def _dispatcher(name: str) -> Any:
         from . import generalised
 
         return generalised.generalised_pair
-    if name == "shift_single":
-        from . import shift
-
-        return shift.shift_single
     from . import compiled
 
     return getattr(compiled, name)

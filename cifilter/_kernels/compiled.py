@@ -1,7 +1,7 @@
 """Compiled (numba) kernels of the Covariance Intersection family, one problem per item.
 
 Imported only by :mod:`cifilter._kernels.dispatch` when the numba backend is used (importing
-cifilter never imports this module). Each kernel is a driver around one per-item function
+cifilter never imports this module, nor numba). Each kernel is a driver around one per-item function
 that runs the numpy path's method with the same formulas in the same order
 (``rules._ci_weights``, ``_numerics.information``, ``_numerics.optimize``): threaded,
 ``prange`` over chunks of the batch with the scratch arrays allocated once per chunk (none
@@ -41,6 +41,7 @@ from .primitives import (
     slope_rounding,
     times_lower,
 )
+from .shift import shift_single
 
 _CHUNK = 128  # items per scratch allocation
 
@@ -51,6 +52,7 @@ S_OMEGA, S_ITERATIONS, S_GAP, S_FLOOR, S_COMPUTED, S_VALUE, S_LOG_VALUE, S_STATU
 STATUS_NOT_FINITE = 4
 STATUS_NOT_SYMMETRIC = 5
 STATUS_NOT_POSITIVE = 6
+STATUS_SHIFT = 10  # shifted_pair: 10 plus shift.shift_single's status
 NO_OVERFLOW = 2.0**1023  # ``_numerics.validation``: 2 P overflows from here on
 
 _jit = njit(cache=True, error_model="numpy", fastmath=False, nogil=True)
@@ -346,6 +348,37 @@ def ci_pair(x, P, L, W, kind, mode, out_s, out_x, out_P, out_K):
 def ci_pair_serial(x, P, L, W, kind, mode, out_s, out_x, out_P, out_K):
     """:func:`ci_pair` without threads (small batches and single calls)."""
     _pair_items(0, x.shape[0], x, P, L, W, kind, mode, out_s, out_x, out_P, out_K)
+
+
+@_jit
+def shifted_pair(x, P, moved, M, N, backward, W, kind, mode, out_s, out_x, out_P, out_K):
+    """:func:`ci_pair_serial` of one pair whose estimate ``moved`` (0 or 1) is first brought
+    by ``M``, ``N`` (:func:`cifilter._kernels.shift.shift_single`: checked, then
+    ``M P M^T + N`` forward or the retrodiction bound back), in one call: the short way of
+    ``kf.fuse(other, lag=k)``.
+
+    ``x`` (1, 2, n) and ``P`` (1, 2, n, n) are the caller's copies (the moved estimate is
+    replaced in them), ``M``, ``N`` (n, n), ``backward`` a bool, the rest as
+    :func:`ci_pair_serial`'s. Returns the retrodiction's split ``alpha`` (1.0 forward).
+    ``out_s[0, S_STATUS]`` is :data:`STATUS_SHIFT` plus ``shift_single``'s status when the
+    shift fails (then nothing else is written), else the pair's status.
+    """
+    n = x.shape[2]
+    L = np.empty((1, 2, n, n))
+    x_moved, P_moved = np.empty(n), np.empty((n, n))
+    status, alpha = shift_single(x[0, moved], P[0, moved], M, N, backward, L[0, 0],
+                                 x_moved, P_moved)
+    if status != 0:
+        out_s[0, S_STATUS] = STATUS_SHIFT + status
+        return alpha
+    for i in range(n):
+        x[0, moved, i] = x_moved[i]
+        for j in range(n):
+            P[0, moved, i, j] = P_moved[i, j]
+    # (the private driver, not the kernel ci_pair_serial: a kernel loaded from numba's
+    # cache cannot be linked into a function compiled afresh in the same process)
+    _pair_items(0, 1, x, P, L, W, kind, mode, out_s, out_x, out_P, out_K)
+    return alpha
 
 
 @_jit

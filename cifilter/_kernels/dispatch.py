@@ -21,7 +21,8 @@ from ..backend import get_backend, numba_available, use_kernels
 from . import background
 
 __all__ = ["AUTO_MAX_DIM", "MANY_MAX_COUNT", "PIN_BLAS", "optimal_many", "optimal_pair",
-           "pair_checked", "pair_single", "report", "shift_for", "single_ready", "weighted"]
+           "pair_checked", "pair_single", "report", "shifted_pair_single", "single_ready",
+           "weighted"]
 
 _calls = {"kernels": 0, "numpy_while_compiling": 0, "handed_back": 0}
 
@@ -281,7 +282,7 @@ def pair_checked(xs, Ps, column, kind, W, numpy_path):
     return _finish_pair(est, shape, size, n, x, P, L, W, kind, numpy_path, outputs)
 
 
-_single: list = []  # (ci_pair_serial, MODE_CHECK | MODE_GAINS), once imported
+_single: list = []  # (ci_pair_serial, shifted_pair, MODE_CHECK | MODE_GAINS), once imported
 _NO_W = np.zeros((1, 1, 1))  # the criterion matrix of "trace" and "det" (not read)
 
 
@@ -312,36 +313,30 @@ def pair_single(x1, P1, x2, P2, kind, W):
     The factors are the kernel's, not LAPACK's, so the results may differ from the full
     path's in the last bits.
     """
-    n = P1.shape[0]
     if not _single:
-        from .compiled import MODE_CHECK, MODE_GAINS, ci_pair_serial
-
-        _single.append((ci_pair_serial, MODE_CHECK | MODE_GAINS))
-    kernel, mode = _single[0]
-    x = np.concatenate((x1, x2), axis=None).reshape(1, 2, n)  # (new arrays)
-    P = np.concatenate((P1, P2)).reshape(1, 2, n, n)
-    Wk = _NO_W if W is None else _writable(W[None])
-    scalars, x_out, P_out, K_out = (np.empty((1, 8)), np.empty((1, n)), np.empty((1, n, n)),
-                                    np.empty((1, 2, n, n)))
+        _import_single()
+    x, P, Wk, outputs = _single_arrays(x1, P1, x2, P2, W)
     _calls["kernels"] += 1
-    kernel(x, P, np.empty((1, 2, n, n)), Wk, _KINDS[kind], mode, scalars, x_out, P_out,
-           K_out)
-    if scalars[0, 7] != 0.0:
-        return None
-    return scalars[0], x_out[0], P_out[0], K_out[0]
+    _single[0](x, P, np.empty(P.shape), Wk, _KINDS[kind], _single[2], *outputs)
+    return _single_answer(outputs)
 
 
-_shift: list = []  # (shift.shift_single,), once imported
+def shifted_pair_single(x1, P1, x2, P2, moved, M, N, backward, kind, W):
+    """:func:`pair_single` of the pair with estimate ``moved`` (0 or 1) first brought by
+    ``M``, ``N``, all in one compiled call (:func:`cifilter._kernels.compiled.shifted_pair`):
+    the short way of ``kf.fuse(other, lag=k)``.
 
-
-def _shifted_single(x, P, M, N, backward):
-    """One estimate brought by ``M``, ``N`` in one compiled call
-    (:func:`cifilter._kernels.shift.shift_single`): ``(x, P, alpha)`` (alpha None
-    forward), or None (a failed check, or arrays of other layouts: the caller then takes
-    the numpy path, which never compiles anything)."""
-    if not (P.flags.c_contiguous and P.flags.writeable and x.flags.c_contiguous
-            and x.flags.writeable):
-        return None
+    ``M``, ``N`` (n, n) are a :class:`~cifilter._numerics.alignment.StepMotion`'s ``F^k``,
+    ``Q_k`` (forward, ``backward`` False) or ``F^-k``, ``F^-k Q_k F^-kT`` (back, by the
+    retrodiction bound). The moved estimate's covariance must be exactly symmetric, and is
+    factored and checked as :func:`cifilter._numerics.alignment.aligned_pair` checks it.
+    Returns ``(scalars, x, P, gains, alpha)`` (``alpha`` the retrodiction's split, None
+    forward), or None for anything the full path must decide: a failed check of either
+    estimate, or a pair the kernel hands back. Its brought estimate agrees with the numpy
+    path's to rounding (the same formulas, summed in another order).
+    """
+    if not _single:
+        _import_single()
     # (one compiled signature: read-only C-ordered M and N, as the StepMotion caches F^k
     # and Q_k; its F^-k comes from LU in Fortran order)
     if M.flags.writeable or not M.flags.c_contiguous:
@@ -350,24 +345,36 @@ def _shifted_single(x, P, M, N, backward):
     if N.flags.writeable or not N.flags.c_contiguous:
         N = np.ascontiguousarray(N)
         N.flags.writeable = False
-    if not _shift:
-        from .shift import shift_single
-
-        _shift.append(shift_single)
-    n = x.shape[0]
-    x_out, P_out = np.empty(n), np.empty((n, n))
-    status, alpha = _shift[0](x, P, M, N, backward, np.empty((n, n)), x_out, P_out)
-    if status:
-        return None
+    x, P, Wk, outputs = _single_arrays(x1, P1, x2, P2, W)
     _calls["kernels"] += 1
-    return x_out, P_out, (alpha if backward else None)
+    alpha = _single[1](x, P, moved, M, N, backward, Wk, _KINDS[kind], _single[2], *outputs)
+    answer = _single_answer(outputs)
+    if answer is None:
+        return None
+    return answer + ((alpha if backward else None),)
 
 
-def shift_for(n):
-    """The compiled time shift of one estimate of dimension ``n`` for the front door's
-    short way of ``lag=`` (``shift(x, P, M, N, backward) -> (x, P, alpha) or None``), or
-    None where single calls stay on numpy (:func:`single_ready`)."""
-    return _shifted_single if single_ready(n) else None
+def _import_single():
+    from .compiled import MODE_CHECK, MODE_GAINS, ci_pair_serial, shifted_pair
+
+    _single.extend((ci_pair_serial, shifted_pair, MODE_CHECK | MODE_GAINS))
+
+
+def _single_arrays(x1, P1, x2, P2, W):
+    """The kernels' copies of one pair, its criterion matrix and the outputs."""
+    n = P1.shape[0]
+    x = np.concatenate((x1, x2), axis=None).reshape(1, 2, n)  # (new arrays)
+    P = np.concatenate((P1, P2)).reshape(1, 2, n, n)
+    Wk = _NO_W if W is None else _writable(W[None])
+    return x, P, Wk, (np.empty((1, 8)), np.empty((1, n)), np.empty((1, n, n)),
+                      np.empty((1, 2, n, n)))
+
+
+def _single_answer(outputs):
+    scalars, x_out, P_out, K_out = outputs
+    if scalars[0, 7] != 0.0:
+        return None
+    return scalars[0], x_out[0], P_out[0], K_out[0]
 
 
 # The compiled solver of N >= 3 estimates runs the numpy path's active-set phase, which the

@@ -1,6 +1,6 @@
 """Compiled (numba) time shift of one estimate: the short way of ``kf.fuse(other, lag=k)``.
 
-One kernel, :func:`shift_single`, does in one call what the time alignment
+:func:`shift_single` does what the time alignment
 (:mod:`cifilter._numerics.alignment`) does for one estimate of the full state brought by a
 :class:`~cifilter._numerics.alignment.StepMotion`: it checks the covariance as the short
 way of :func:`~cifilter._numerics.alignment.aligned_pair` does (exactly symmetric, a
@@ -12,6 +12,9 @@ estimate forward (the exact prediction ``(M L)(M L)^T + N``) or back (the retrod
 :func:`~cifilter._numerics.alignment.retrodicted` do; ``M``, ``N`` are the motion's
 ``F^k``, ``Q_k`` or ``F^-k``, ``F^-k Q_k F^-kT`` (cached by the motion). Same formulas,
 summed in another order than BLAS's: the results agree with the numpy path's to rounding.
+The kernel :func:`cifilter._kernels.compiled.shifted_pair` calls it to bring one estimate
+of a pair this way and solve the pair in the same compiled call, so that
+``kf.fuse(other, lag=k)`` costs one call from Python, as ``kf.fuse(other)`` does.
 Imported only when it runs (importing cifilter never imports numba).
 """
 
@@ -91,3 +94,4 @@ def shift_single(x, P, M, N, backward, L, x_out, P_out):
             P_out[i, j] = value
             P_out[j, i] = value
     return 0, share
+

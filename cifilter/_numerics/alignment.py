@@ -52,6 +52,7 @@ __all__ = [
     "check_times",
     "finite_real",
     "motion_matrices",
+    "pair_step",
     "predicted",
     "residuals_to_reference",
     "retrodicted",
@@ -308,6 +309,10 @@ def check_times(times: Any, count: int, at: Any = None) -> tuple:
 
     Returns ``(times, at)`` as a tuple of floats and a float.
     """
+    if (type(times) is tuple and len(times) == count
+            and all(type(t) is float and math.isfinite(t) for t in times)
+            and (at is None or (type(at) is float and math.isfinite(at)))):
+        return times, (max(times) if at is None else at)  # (kf.fuse(lag=)'s floats)
     if isinstance(times, (str, bytes)) or not hasattr(times, "__len__"):
         raise TypeError(
             f"times must be a sequence of {count} numbers (the time of each estimate), got "
@@ -676,8 +681,7 @@ _LARGEST_ENTRY = 2.0 ** 1023
 
 def aligned_pair(pairs: Sequence[Any], times: Any, at: Any,
                  motion: Optional[Callable[..., Any]],
-                 labels: Optional[Sequence[str]] = None,
-                 shift_for: Optional[Callable[[int], Any]] = None) -> Optional[tuple]:
+                 labels: Optional[Sequence[str]] = None) -> Optional[tuple]:
     """Two single estimates brought to one time the short way, or None.
 
     The front door's ``times=`` for the commonest call, ``kf.fuse(other, lag=k)``: two
@@ -689,12 +693,8 @@ def aligned_pair(pairs: Sequence[Any], times: Any, at: Any,
     alpha)`` with the brought pairs (the one that stays is passed on as given: the rule's
     route checks it), ``at`` as :func:`check_times` gives it, and ``alpha`` per estimate
     (None unless retrodicted). Anything else, and every failure, returns None, and the usual
-    path validates, aligns and explains its errors in its order.
-
-    ``shift_for(n)``, when given, may return a compiled ``shift(x, P, M, N, backward) ->
-    (x, P, alpha) or None`` that does the checks and the shift of one estimate in one call
-    (``M``, ``N``: a :class:`StepMotion`'s ``F^k``, ``Q_k`` forward or ``F^-k``,
-    ``F^-k Q_k F^-kT`` back); its results agree with the numpy steps to rounding.
+    path validates, aligns and explains its errors in its order. (A caller that brings and
+    fuses in one compiled call asks :func:`pair_step` instead.)
     """
     try:
         if len(pairs) != 2:
@@ -710,22 +710,10 @@ def aligned_pair(pairs: Sequence[Any], times: Any, at: Any,
         times, at = check_times(times, 2, at)
         out: list = [pairs[0], pairs[1]]
         alpha: list = [None, None]
-        steps = motion if type(motion) is StepMotion else None
-        shift = shift_for(n) if shift_for is not None and steps is not None else None
         for i, t in enumerate(times):
             if t == at:
                 continue
             x, P = pairs[i]
-            if shift is not None and steps is not None:
-                dt = abs(at - t)
-                backward = t > at
-                M, N = (steps.back(dt, n, f"F of motion({dt!r})") if backward
-                        else steps.checked(dt, n))
-                done = shift(x.reshape(n), P, M, N, backward)
-                if done is None:
-                    return None
-                out[i], alpha[i] = (done[0].reshape(x.shape), done[1]), done[2]
-                continue
             # Exact symmetry also fails for a NaN anywhere (NaN != NaN); an infinity makes
             # LAPACK fail or the factor's trace infinite (cholesky_single's None). A finite
             # trace below 2**1023 bounds every entry of a positive definite matrix by it.
@@ -739,6 +727,39 @@ def aligned_pair(pairs: Sequence[Any], times: Any, at: Any,
             x_i, P_i, alpha[i] = _brought(x.reshape(n), L, True, i, t, at, motion, n, where)
             out[i] = (x_i.reshape(x.shape), P_i)
         return out, at, tuple(alpha)
+    except (TypeError, ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return None
+
+
+def pair_step(times: Any, at: Any, motion: Any, n: int) -> Optional[tuple]:
+    """The one step of :func:`aligned_pair` for a caller that brings the estimate itself.
+
+    For two estimates of dimension ``n`` of which exactly one is away from ``at`` and
+    ``motion`` is a :class:`StepMotion` (``kf.fuse(other, lag=k)``): ``(moved, M, N,
+    backward, at)``, where estimate ``moved`` is brought by ``x -> M x``, ``P -> M P M^T +
+    N`` forward (``backward`` False: ``M, N = F^k, Q_k``, as :func:`predicted`) or by the
+    retrodiction bound of :func:`retrodicted` back (``M, N = F^-k, F^-k Q_k F^-kT``), and
+    ``at`` is :func:`check_times`'s. The matrices are the motion's cached, checked,
+    read-only ones. The caller checks the moved covariance as :func:`aligned_pair` does.
+    Anything else, and every failure, returns None (the usual path explains).
+    """
+    if type(motion) is not StepMotion:
+        return None
+    try:
+        (t0, t1), at = check_times(times, 2, at)
+        if t0 == at and t1 != at:
+            t = t1
+            moved = 1
+        elif t1 == at and t0 != at:
+            t = t0
+            moved = 0
+        else:
+            return None
+        dt = abs(at - t)
+        backward = t > at
+        M, N = (motion.back(dt, n, f"F of motion({dt!r})") if backward
+                else motion.checked(dt, n))
+        return moved, M, N, backward, at
     except (TypeError, ValueError, ArithmeticError, np.linalg.LinAlgError):
         return None
 

@@ -150,6 +150,8 @@ def _own_model(filt):
 
 def _lag_times(lag, count):
     """``times``, ``at`` for ``lag=``: this filter at 0, other ``i`` at ``-lag_i``."""
+    if type(lag) is int and count == 2:  # the usual call
+        return (0.0, -float(lag)), 0.0
     lags = list(lag) if isinstance(lag, (list, tuple)) else [lag] * (count - 1)
     if len(lags) != count - 1:
         raise ValueError(f"lag has {len(lags)} entries but there are {count - 1} other "
@@ -160,6 +162,9 @@ def _lag_times(lag, count):
 
 def _own_step_model(filt):
     """The filter's ``F`` and ``Q`` as a motion model of whole steps (``lag=``)."""
+    F, Q = getattr(filt, "F", None), getattr(filt, "Q", None)
+    if type(F) is np.ndarray and type(Q) is np.ndarray and F.dtype.char == Q.dtype.char == "d":
+        return StepMotion(F, Q)  # (the usual filter: float64 arrays as they are)
     missing = [name for name in ("F", "Q")
                if not isinstance(getattr(filt, name, None), np.ndarray)]
     if missing:

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .._kernels import dispatch as kernels
-from .._numerics.alignment import PartialEstimates, aligned_pair
+from .._numerics.alignment import PartialEstimates, aligned_pair, pair_step
 from .._numerics.criteria import criterion_report, gap_converged, parse_criterion
 from .._numerics.information import weighted_fusion
 from .._numerics.validation import as_covariances, as_estimates, check_weights, restore_style
@@ -291,9 +291,12 @@ def _fuse_pair(pairs, options, H=None, times=None):
     take :func:`_checked_pairs`.
     ``H`` (checked observation matrices) sends the pair to generalised CI's route;
     ``times`` (``(times, at, motion, labels)`` of the front door's ``times=``) first brings
-    the pair to one time the short way (:func:`cifilter._numerics.alignment.aligned_pair`,
-    its shift compiled where single calls run on the kernels) and adds the front door's
-    ``at`` and ``retrodiction_alpha`` to ``info``.
+    the pair to one time the short way and adds the front door's ``at`` and
+    ``retrodiction_alpha`` to ``info``: where single calls run on the kernels and one
+    estimate moves by whole steps of a filter (``lag=``), brought and fused in the same
+    compiled call (:func:`cifilter._numerics.alignment.pair_step`'s matrices,
+    :func:`cifilter._kernels.dispatch.shifted_pair_single`), else brought by
+    :func:`cifilter._numerics.alignment.aligned_pair` and fused as above.
     The kernel checks the input as the validation does; any failed check, and any pair the
     kernel hands back, returns None, and the usual route validates (raising its error) and
     solves. The result is the usual route's under the numba backend (the same kernel, the
@@ -308,12 +311,6 @@ def _fuse_pair(pairs, options, H=None, times=None):
         criterion = options["criterion"]
     else:
         criterion = "trace"
-    extra = None
-    if times is not None:  # kf.fuse(other, lag=k): (after the options: no wasted shift)
-        aligned = aligned_pair(pairs, *times, kernels.shift_for)
-        if aligned is None:
-            return None
-        pairs, extra = aligned[0], {"at": aligned[1], "retrodiction_alpha": aligned[2]}
     (x1, P1), (x2, P2) = pairs
     if not (type(P1) is np.ndarray and type(P2) is np.ndarray and type(x1) is np.ndarray
             and type(x2) is np.ndarray):
@@ -324,7 +321,7 @@ def _fuse_pair(pairs, options, H=None, times=None):
             or x1.dtype.char != "d" or x2.dtype.char != "d"):
         return None
     if len(shape) > 2:  # batches: the batched route, on the stacked arrays
-        if extra:
+        if times is not None:
             return None
         if x_shape == shape[:-1]:
             xs = np.stack((x1, x2), axis=-2)
@@ -346,7 +343,19 @@ def _fuse_pair(pairs, options, H=None, times=None):
     if parsed is None or (parsed[1] is not None and parsed[1].ndim != 2):
         return None  # (a batch of criterion matrices makes a batch of problems)
     kind, W = parsed
-    if not kernels.single_ready(n):
+    compiled = kernels.single_ready(n)
+    extra = None
+    step = None
+    if times is not None:  # kf.fuse(other, lag=k): (after the options: no wasted shift)
+        if compiled:  # brought and fused in one compiled call where the step allows
+            step = pair_step(times[0], times[1], times[2], n)
+        if step is None:
+            aligned = aligned_pair(pairs, *times)
+            if aligned is None:
+                return None
+            ((x1, P1), (x2, P2)), at, alpha = aligned
+            extra = {"at": at, "retrodiction_alpha": alpha}
+    if not compiled:
         # the numpy backend (and "auto" before the kernels are there): one pair through
         # LAPACK directly (rules/_ci_lean.py), or the usual route where it declines
         lean = lean_pair(x1.reshape(n), np.ascontiguousarray(P1), x2.reshape(n),
@@ -357,10 +366,17 @@ def _fuse_pair(pairs, options, H=None, times=None):
         if extra:
             info.update(_owned_extra(extra))
         return owned_result(x[:, None] if column else x, P, "ci", weights, gains, info)
-    solved = kernels.pair_single(x1, P1, x2, P2, kind, W)
+    if step is None:
+        solved = kernels.pair_single(x1, P1, x2, P2, kind, W)
+    else:
+        moved, M, N, backward, at = step
+        solved = kernels.shifted_pair_single(x1, P1, x2, P2, moved, M, N, backward, kind, W)
+        if solved is not None:
+            alpha = (solved[4], None) if moved == 0 else (None, solved[4])
+            extra = {"at": at, "retrodiction_alpha": alpha}
     if solved is None:
         return None
-    scalars, x, P, gains = solved
+    scalars, x, P, gains = solved[:4]
     omega = float(scalars[0])
     gap, floor, computed = float(scalars[2]), float(scalars[3]), float(scalars[4])
     info = {"criterion": kind, "rule": "optimal", "iterations": np.array(int(scalars[1])),

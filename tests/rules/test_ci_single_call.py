@@ -376,14 +376,14 @@ def test_bad_item_of_a_batch_gives_the_usual_error(case):
 
 @needs_numba
 @pytest.mark.parametrize("lag", [2, -1])
-def test_lag_takes_the_route_after_the_alignment(monkeypatch, lag):
+def test_lag_brings_and_fuses_in_one_compiled_call(monkeypatch, lag):
     xs, Ps = _problem(10)
     kf = KalmanFilter(dim_x=4, dim_z=1)
     kf.F = np.eye(4) + np.diag([1.0, 1.0], 2)
     kf.Q = 0.01 * np.eye(4)
     kf.x, kf.P = xs[0].reshape(4, 1), Ps[0]
     calls = []
-    route = dispatch.pair_single
+    route = dispatch.shifted_pair_single
 
     def counted(*args):
         result = route(*args)
@@ -397,7 +397,8 @@ def test_lag_takes_the_route_after_the_alignment(monkeypatch, lag):
                                                              @ kf.Q @ np.linalg.matrix_power(
                                                                  kf.F, j).T
                                                              for j in range(int(dt)))))
-        monkeypatch.setattr(dispatch, "pair_single", counted)
+        monkeypatch.setattr(dispatch, "shifted_pair_single", counted)
+        monkeypatch.setattr(dispatch, "pair_single", None)  # (not called)
         result = kf.fuse((xs[1], Ps[1]), lag=lag)
     assert calls == [True]
     assert result.info["at"] == 0.0 and result.x.shape == (4, 1)
