@@ -46,6 +46,7 @@ from .primitives import (
     KIND_WEIGHTED,
     diagonal_spread_squared,
     interval_gap,
+    jacobi_rotation,
     jit,
     lower_inverse,
     report,
@@ -84,15 +85,7 @@ def _rows_svd(G, V, m, n):
                 if abs(gamma) <= EPS * math.sqrt(alpha) * math.sqrt(beta):
                     continue
                 rotated = True
-                zeta = (beta - alpha) / (2.0 * gamma)
-                if abs(zeta) > 1e150:
-                    t = 0.5 / zeta
-                else:
-                    t = 1.0 / (abs(zeta) + math.sqrt(zeta * zeta + 1.0))
-                    if zeta < 0.0:
-                        t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
+                _, c, s = jacobi_rotation((beta - alpha) / (2.0 * gamma))
                 for k in range(n):
                     gp = G[p, k]
                     gq = G[q, k]

@@ -16,7 +16,8 @@ from numba import njit
 from .._numerics.criteria import SLOPE_ROUNDING
 
 __all__ = ["EPS", "KIND_DET", "KIND_NONE", "KIND_TRACE", "KIND_WEIGHTED", "add_gram", "cholesky",
-           "diagonal_spread_squared", "interval_gap", "jacobi_eigh", "jit", "lower_inverse",
+           "diagonal_spread_squared", "interval_gap", "jacobi_eigh", "jacobi_rotation", "jit",
+           "lower_inverse",
            "lower_times", "minimize_interval", "numerically_positive_definite",
            "pair_derivative", "report", "rounding_scale", "slope_rounding", "times_lower"]
 
@@ -123,6 +124,24 @@ def add_gram(M, out, n):
 
 
 @jit
+def jacobi_rotation(theta):
+    """``(t, c, s)`` of the Jacobi rotation that annihilates an off-diagonal entry, given
+    ``theta = (a_qq - a_pp) / (2 a_pq)``: the smaller root ``t = tan(phi)`` of
+    ``t^2 + 2 theta t - 1 = 0`` (``1 / (2 theta)`` where ``theta^2`` would overflow),
+    ``c = cos(phi)``, ``s = sin(phi)`` (Golub & Van Loan, Algorithm 8.5.1). Shared by the
+    two-sided rotations of :func:`jacobi_eigh` and the one-sided ones of the generalised
+    CI kernel."""
+    if abs(theta) > 1e150:
+        t = 0.5 / theta
+    else:
+        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+        if theta < 0.0:
+            t = -t
+    c = 1.0 / math.sqrt(t * t + 1.0)
+    return t, c, t * c
+
+
+@jit
 def jacobi_eigh(A, lam, V, n):
     """Eigen-decomposition of the symmetric A (destroyed) by cyclic Jacobi rotations.
 
@@ -147,15 +166,7 @@ def jacobi_eigh(A, lam, V, n):
                 if apq * apq <= tol2 * abs(app * aqq):
                     continue
                 rotated = True
-                theta = (aqq - app) / (2.0 * apq)
-                if abs(theta) > 1e150:
-                    t = 0.5 / theta
-                else:
-                    t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                    if theta < 0.0:
-                        t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
+                t, c, s = jacobi_rotation((aqq - app) / (2.0 * apq))
                 tau = s / (1.0 + c)
                 A[p, p] = app - t * apq
                 A[q, q] = aqq + t * apq

@@ -32,6 +32,7 @@ __all__ = [
     "gradient_rounding",
     "pair_certificate",
     "parse_criterion",
+    "parsed_or_none",
     "rounding_scale",
     "scaled_condition",
     "slope_rounding",
@@ -51,6 +52,18 @@ def parse_criterion(criterion, n):
             f"matrix, got {criterion!r}"
         )
     return "weighted-trace", check_psd_weight_matrix(criterion, n, "criterion")
+
+
+def parsed_or_none(criterion, n):
+    """:func:`parse_criterion`'s answer, or None where it raises: for the short routes of
+    single calls, which leave the error to the usual route (it raises it after the
+    estimates' own errors, which come first)."""
+    if type(criterion) is str and criterion in ("trace", "det"):
+        return criterion, None
+    try:
+        return parse_criterion(criterion, n)
+    except (TypeError, ValueError):
+        return None
 
 
 def criterion_value(P, kind, W):

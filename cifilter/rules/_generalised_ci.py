@@ -42,7 +42,7 @@ from .._numerics.criteria import (
     criterion_of_factor,
     criterion_report,
     criterion_value,
-    parse_criterion,
+    parsed_or_none,
 )
 from .._numerics.information import (
     information_factors,
@@ -393,7 +393,7 @@ def _pair_single(est, kind, W):
     return weights, info, (x, P, gains)
 
 
-def partial_pair_route(pairs: Any, H: tuple, options: Any) -> Optional[FusionResult]:
+def partial_pair_route(pairs: Any, H: tuple, criterion: Any) -> Optional[FusionResult]:
     """The ``"ci"`` rule's route for ``kf.fuse(other, H=H)``: one compiled call from the
     raw arrays to the result, or None (the usual route: validation, then
     :func:`generalised_ci`).
@@ -401,8 +401,9 @@ def partial_pair_route(pairs: Any, H: tuple, options: Any) -> Optional[FusionRes
     Taken for two single ``(x, P)`` pairs of float64 arrays (``x`` (m,) or (m, 1)), one
     of the full state (its ``H`` entry None) and one of ``H x`` (``H`` (m, n) with
     ``m <= n``, as checked by
-    :func:`cifilter._numerics.alignment.check_observation_matrices`), with no option but
-    ``criterion`` (optimal weights), when the backend runs the kernel
+    :func:`cifilter._numerics.alignment.check_observation_matrices`) and the ``criterion``
+    of optimal weights (the ``"ci"`` record's route passes it when it is the only
+    option), when the backend runs the kernel
     (:func:`_kernel_allowed`). The covariances are factored by LAPACK as given and the
     kernel checks the rest as the validation does; any failed check, a covariance that is
     not exactly symmetric (the validation symmetrises it) and any problem the kernel does
@@ -412,12 +413,6 @@ def partial_pair_route(pairs: Any, H: tuple, options: Any) -> Optional[FusionRes
     """
     if get_backend() == "numpy":
         return None
-    if options:
-        if len(options) != 1 or "criterion" not in options:
-            return None
-        criterion = options["criterion"]
-    else:
-        criterion = "trace"
     if len(pairs) != 2 or len(H) != 2 or (H[0] is None) == (H[1] is None):
         return None
     a = 0 if H[0] is None else 1
@@ -434,13 +429,10 @@ def partial_pair_route(pairs: Any, H: tuple, options: Any) -> Optional[FusionRes
     if (Pa.shape != (n, n) or Pb.shape != (m, m) or Hb.shape != (m, n) or m == 0 or m > n
             or xa.shape not in ((n,), (n, 1)) or xb.shape not in ((m,), (m, 1))):
         return None
-    if type(criterion) is str and criterion in ("trace", "det"):
-        kind, W = criterion, None
-    else:
-        try:
-            kind, W = parse_criterion(criterion, n)
-        except (TypeError, ValueError):
-            return None  # (the usual route raises it, after the estimates' errors)
+    parsed = parsed_or_none(criterion, n)
+    if parsed is None:
+        return None
+    kind, W = parsed
     if not _kernel_allowed(n):
         return None
     # (LAPACK's factors of the covariances as given, as the validation takes them: the

@@ -17,7 +17,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._kernels import dispatch as kernels
 from .._numerics.alignment import PartialEstimates, aligned_pair, pair_step
-from .._numerics.criteria import criterion_report, gap_converged, parse_criterion
+from .._numerics.criteria import (
+    criterion_report,
+    gap_converged,
+    parse_criterion,
+    parsed_or_none,
+)
 from .._numerics.information import weighted_fusion
 from .._numerics.validation import as_covariances, as_estimates, check_weights, restore_style
 from ..result import FusionResult, owned_result
@@ -192,17 +197,6 @@ def covariance_intersection(xs: ArrayLike, Ps: ArrayLike,
     return _covariance_intersection(est, criterion, omega)
 
 
-def _parsed(criterion, n):
-    """``parse_criterion``'s answer, or None where it raises (the usual route raises it,
-    after the validation of the estimates, whose errors come first)."""
-    if type(criterion) is str and criterion in ("trace", "det"):
-        return criterion, None
-    try:
-        return parse_criterion(criterion, n)
-    except (TypeError, ValueError):
-        return None
-
-
 def _checked_pairs(xs, Ps, criterion):
     """Optimal CI of a batch of pairs given as float64 arrays ``xs`` (..., 2, n) or
     (..., 2, n, 1) and ``Ps`` (..., 2, n, n), with the validation folded into the kernel's
@@ -222,7 +216,7 @@ def _checked_pairs(xs, Ps, criterion):
         column = True
     else:
         return None
-    parsed = _parsed(criterion, shape[-1])
+    parsed = parsed_or_none(criterion, shape[-1])
     if parsed is None:
         return None
     kind, W = parsed
@@ -303,14 +297,14 @@ def _fuse_pair(pairs, options, H=None, times=None):
     same certificate and ``info``), up to the rounding of the Cholesky factors (the
     kernel's own here, LAPACK's there).
     """
-    if H is not None:  # kf.fuse(other, H=H): generalised CI's compiled pair
-        return partial_pair_route(pairs, H, options)
     if options:
         if len(options) != 1 or "criterion" not in options:
             return None
         criterion = options["criterion"]
     else:
         criterion = "trace"
+    if H is not None:  # kf.fuse(other, H=H): generalised CI's compiled pair
+        return partial_pair_route(pairs, H, criterion)
     (x1, P1), (x2, P2) = pairs
     if not (type(P1) is np.ndarray and type(P2) is np.ndarray and type(x1) is np.ndarray
             and type(x2) is np.ndarray):
@@ -339,7 +333,7 @@ def _fuse_pair(pairs, options, H=None, times=None):
         return None
     if n == 0:
         return None
-    parsed = _parsed(criterion, n)
+    parsed = parsed_or_none(criterion, n)
     if parsed is None or (parsed[1] is not None and parsed[1].ndim != 2):
         return None  # (a batch of criterion matrices makes a batch of problems)
     kind, W = parsed

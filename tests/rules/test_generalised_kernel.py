@@ -21,6 +21,7 @@ from worst_case import assert_bound_holds, gain_bound_difference, padded
 import cifilter
 from cifilter import KalmanFilter, fuse
 from cifilter.backend import numba_available
+from cifilter.registry import get_method
 
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba is not installed")
 
@@ -253,10 +254,10 @@ def test_kernel_result_is_a_bound_in_the_exact_worst_direction(problem, kind):
 
 # ------------------------------------------- the route from the raw arrays (kf.fuse(H=))
 def _route(pairs, H, **options):
-    from cifilter.rules._generalised_ci import partial_pair_route
-
+    """The ``"ci"`` record's short route with ``H=`` (``rules/ci.py`` checks the options,
+    ``partial_pair_route`` the rest)."""
     with cifilter.use_backend("numba"):
-        return partial_pair_route(pairs, tuple(H), options)
+        return get_method("ci").pair(pairs, options, tuple(H))
 
 
 @settings(max_examples=80)
@@ -351,7 +352,7 @@ def test_route_declines_what_it_does_not_handle():
     with cifilter.use_backend("numpy"):
         from cifilter.rules._generalised_ci import partial_pair_route
 
-        assert partial_pair_route([a, b], (None, H), {}) is None
+        assert partial_pair_route([a, b], (None, H), "trace") is None
 
 
 def test_one_compiled_signature_for_every_layout():
