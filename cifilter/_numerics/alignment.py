@@ -310,9 +310,12 @@ def check_times(times: Any, count: int, at: Any = None) -> tuple:
     Returns ``(times, at)`` as a tuple of floats and a float.
     """
     if (type(times) is tuple and len(times) == count
-            and all(type(t) is float and math.isfinite(t) for t in times)
             and (at is None or (type(at) is float and math.isfinite(at)))):
-        return times, (max(times) if at is None else at)  # (kf.fuse(lag=)'s floats)
+        for t in times:  # (kf.fuse(lag=)'s finite floats, as they are)
+            if type(t) is not float or not math.isfinite(t):
+                break
+        else:
+            return times, (max(times) if at is None else at)
     if isinstance(times, (str, bytes)) or not hasattr(times, "__len__"):
         raise TypeError(
             f"times must be a sequence of {count} numbers (the time of each estimate), got "

@@ -365,7 +365,7 @@ def _fuse_pair(pairs, options, H=None, times=None):
     else:
         moved, M, N, backward, at = step
         solved = kernels.shifted_pair_single(x1, P1, x2, P2, moved, M, N, backward, kind, W)
-        if solved is not None:
+        if solved is not None:  # (floats and None: nothing to freeze)
             alpha = (solved[4], None) if moved == 0 else (None, solved[4])
             extra = {"at": at, "retrodiction_alpha": alpha}
     if solved is None:
@@ -380,7 +380,7 @@ def _fuse_pair(pairs, options, H=None, times=None):
     if kind == "det":
         info["log_value"] = np.array(scalars[6])
     if extra:
-        info.update(_owned_extra(extra))
+        info.update(extra if step is not None else _owned_extra(extra))
     return owned_result(x[:, None] if column else x, P, "ci", np.array([omega, 1.0 - omega]),
                         gains, info)
 
