@@ -17,12 +17,17 @@ calls are interleaved one by one (``--repeat`` rounds of ``--number`` calls of e
 each round in a new, seeded order), so that a disturbance of the shared machine, and the
 cache footprint of the call before, hit every row alike; each row reports its
 least disturbed call (the minimum, timeit's advice) and its median call, each divided by
-the baseline of the same criterion. The issue's target: ``H=`` and ``lag=`` cost at most 1.5x
+the baseline of the same criterion. With ``--blocks`` each row's calls of a round run in
+a row instead (the rows in a new seeded order each round): the latency of a tracker that
+calls one kind of fusion in a loop, its code and data warm, where the interleaved order
+also charges each row for the cache misses of running after other kinds of call. The
+issue's target: ``H=`` and ``lag=`` cost at most 1.5x
 the plain call. Run it with
 
     python benchmarks/bench_options.py
     python benchmarks/bench_options.py --number 300 --repeat 15
     python benchmarks/bench_options.py --backend numba   # the compiled kernels, warmed up
+    python benchmarks/bench_options.py --backend numba --blocks   # one kind of call at a time
 
 ``--backend`` selects the backend of the CI family (``cifilter.set_backend``; default
 ``auto``, under which single calls run on the compiled kernels once they are in numba's
@@ -123,9 +128,11 @@ def _import(tree=None):
     return module
 
 
-def run(number=200, repeat=9, criteria=("trace", "det"), backend=None, tree=None):
+def run(number=200, repeat=9, criteria=("trace", "det"), backend=None, tree=None,
+        blocks=False):
     """Per row: the least disturbed call (the minimum over ``number * repeat`` timed
-    calls) and the median call, with the rows' calls interleaved."""
+    calls) and the median call, with the rows' calls interleaved (``blocks``: each row's
+    ``number`` calls of a round in a row, the rows in a new order each round)."""
     cifilter = _import(tree)
     if backend is not None:
         cifilter.set_backend(backend)
@@ -149,13 +156,18 @@ def run(number=200, repeat=9, criteria=("trace", "det"), backend=None, tree=None
     # lag=+3 problem, timed after residual=, took 1.26x the plain call it otherwise matches).
     order = np.random.default_rng(0)
     for _ in range(repeat):
-        for _ in range(number):
-            for index in order.permutation(len(table)):
-                criterion, label, other, options = table[index]
-                kf.x, kf.P = x0, P0
-                start = clock()
-                kf.fuse(other, **options)
-                samples[(criterion, label)].append(clock() - start)
+        if blocks:  # one row at a time, as a tracker that calls one fusion in a loop
+            schedule = [index for index in order.permutation(len(table))
+                        for _ in range(number)]
+        else:
+            schedule = [index for _ in range(number)
+                        for index in order.permutation(len(table))]
+        for index in schedule:
+            criterion, label, other, options = table[index]
+            kf.x, kf.P = x0, P0
+            start = clock()
+            kf.fuse(other, **options)
+            samples[(criterion, label)].append(clock() - start)
     best = {key: min(values) for key, values in samples.items()}
     median = {key: float(np.median(values)) for key, values in samples.items()}
     return best, median, solvers
@@ -168,9 +180,12 @@ def main(argv=None):
     parser.add_argument("--backend", choices=("auto", "numpy", "numba"),
                         help="backend of the CI family (cifilter.set_backend)")
     parser.add_argument("--tree", help="import cifilter from this source tree")
+    parser.add_argument("--blocks", action="store_true",
+                        help="time each row's calls of a round in a row (warm), not "
+                             "interleaved with the other rows' calls")
     args = parser.parse_args(argv)
     best, median, solvers = run(args.number, args.repeat, backend=args.backend,
-                                tree=args.tree)
+                                tree=args.tree, blocks=args.blocks)
     print(f"cifilter from {cifilter.__file__}, backend {cifilter.get_backend()}")
     print(f"{'criterion':10s} {'call':12s} {'best us':>8s} {'/ plain':>8s} {'median us':>10s} "
           f"{'/ plain':>8s}  solver")
