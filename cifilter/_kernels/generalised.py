@@ -49,7 +49,9 @@ from .primitives import (
     jacobi_rotation,
     jit,
     lower_inverse,
+    lower_times,
     report,
+    times_lower,
 )
 
 __all__ = ["generalised_pair", "partial_pair"]
@@ -222,19 +224,9 @@ def generalised_pair(xa, Pa, La, xb, Pb, Lb, H, W, kind, check, out_x, out_P, ou
     lower_inverse(Lb, Lbi, m)
     # G = L_b^-1 (H L_a)
     A = np.empty((m, n))
-    for i in range(m):
-        for j in range(n):
-            s = 0.0
-            for k in range(j, n):
-                s += H[i, k] * La[k, j]
-            A[i, j] = s
+    times_lower(H, La, A, n)
     G = np.empty((m, n))
-    for i in range(m):
-        for j in range(n):
-            s = 0.0
-            for k in range(i + 1):
-                s += Lbi[i, k] * A[k, j]
-            G[i, j] = s
+    lower_times(Lbi, A, G, m)
     V = np.empty((m, m))
     if not _rows_svd(G, V, m, n):
         return 1
@@ -334,20 +326,10 @@ def generalised_pair(xa, Pa, La, xb, Pb, Lb, H, W, kind, check, out_x, out_P, ou
                 for k in range(m):
                     s += Y[i, k] * ((1.0 - w) * d[k]) * V[j, order[k]]
                 Z[i, j] = s
-    for i in range(n):
-        for j in range(m):
-            s = 0.0
-            for k in range(j, m):
-                s += Z[i, k] * Lbi[k, j]
-            out_Kb[i, j] = s
+    times_lower(Z, Lbi, out_Kb, m)
     # M2 = K_b L_b
     M2 = np.empty((n, m))
-    for i in range(n):
-        for j in range(m):
-            s = 0.0
-            for k in range(j, m):
-                s += out_Kb[i, k] * Lb[k, j]
-            M2[i, j] = s
+    times_lower(out_Kb, Lb, M2, m)
     if w == 0.0:
         for i in range(n):
             for j in range(n):
@@ -371,12 +353,7 @@ def generalised_pair(xa, Pa, La, xb, Pb, Lb, H, W, kind, check, out_x, out_P, ou
                     s += out_Kb[i, k] * H[k, j]
                 out_Ka[i, j] = (1.0 if i == j else 0.0) - s
         M1 = np.empty((n, n))
-        for i in range(n):
-            for j in range(n):
-                s = 0.0
-                for k in range(j, n):
-                    s += out_Ka[i, k] * La[k, j]
-                M1[i, j] = s
+        times_lower(out_Ka, La, M1, n)
         for i in range(n):
             for j in range(i + 1):
                 s = 0.0

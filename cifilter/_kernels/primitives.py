@@ -92,9 +92,10 @@ def lower_inverse(L, X, n):
 
 @jit
 def lower_times(L, A, out, n):
-    """out = L A for lower triangular L (its zeros above the diagonal are skipped)."""
+    """out = L A for lower triangular L (n, n) and A of n rows (its columns: out's), L's
+    zeros above the diagonal skipped."""
     for i in range(n):
-        for j in range(n):
+        for j in range(A.shape[1]):
             s = 0.0
             for k in range(i + 1):
                 s += L[i, k] * A[k, j]
@@ -103,8 +104,9 @@ def lower_times(L, A, out, n):
 
 @jit
 def times_lower(A, L, out, n):
-    """out = A L for lower triangular L (its zeros above the diagonal are skipped)."""
-    for i in range(n):
+    """out = A L for lower triangular L (n, n) and A of n columns (its rows: out's), L's
+    zeros above the diagonal skipped."""
+    for i in range(A.shape[0]):
         for j in range(n):
             s = 0.0
             for k in range(j, n):

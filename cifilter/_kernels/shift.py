@@ -20,7 +20,7 @@ Imported only when it runs (importing cifilter never imports numba).
 
 import math
 
-from .primitives import cholesky, jit
+from .primitives import cholesky, jit, times_lower
 
 __all__ = ["shift_single"]
 
@@ -44,14 +44,8 @@ def shift_single(x, P, M, N, backward, L, x_out, P_out):
         return 2, 1.0
     if not cholesky(P, L, n):
         return 2, 1.0
-    # A = M L into L's place, row by row (M L's row i needs L's columns: keep a copy row)
     A = P_out  # (scratch until P is formed below: A is read before P_out is written)
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for k in range(j, n):  # L lower triangular
-                s += M[i, k] * L[k, j]
-            A[i, j] = s
+    times_lower(M, L, A, n)
     a = 0.0
     for i in range(n):
         for j in range(n):

@@ -281,15 +281,23 @@ def pair_certificate(omega, slope, rounding, value=None):
     most that); ``computed`` the interval gap of the computed slope; all divided by
     ``value`` (the trace criterion at ``omega``) unless it is None (det: log det units).
     """
+    if (type(slope) is float and type(rounding) is float and type(omega) is float
+            and (value is None or type(value) is float)):
+        # one problem in Python floats (the single-call path): no numpy warning to silence
+        return _pair_certificate(max, omega, slope, rounding, value)
     maximum = max if isinstance(slope, float) else np.maximum
     with np.errstate(all="ignore"):
-        product = 2.0 * _EPS * (abs(slope) + rounding)
-        gap = maximum(interval_gap(omega, slope - rounding),
-                      interval_gap(omega, slope + rounding)) + product
-        computed = interval_gap(omega, slope)
-        floor = rounding + product
-        if value is not None:
-            gap, floor, computed = gap / value, floor / value, computed / value
+        return _pair_certificate(maximum, omega, slope, rounding, value)
+
+
+def _pair_certificate(maximum, omega, slope, rounding, value):
+    product = 2.0 * _EPS * (abs(slope) + rounding)
+    gap = maximum(interval_gap(omega, slope - rounding),
+                  interval_gap(omega, slope + rounding)) + product
+    computed = interval_gap(omega, slope)
+    floor = rounding + product
+    if value is not None:
+        gap, floor, computed = gap / value, floor / value, computed / value
     return GapCertificate(gap, floor, computed)
 
 

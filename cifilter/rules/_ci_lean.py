@@ -24,9 +24,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import lapack
 
-from .._numerics.criteria import GAP_TOL, gap_converged, slope_rounding_single
+from .._numerics.criteria import (
+    GAP_TOL,
+    gap_converged,
+    pair_certificate,
+    slope_rounding_single,
+)
 from .._numerics.information import DIAGONAL_TRUST
-from .._numerics.optimize import interval_gap, minimize_convex_scalar
+from .._numerics.optimize import minimize_convex_scalar
 from .._numerics.validation import SYMMETRY_RTOL
 from ._ci_weights import cached_identity, pair_derivative
 
@@ -197,16 +202,10 @@ def _lean_pair(x1, P1, x2, P2, kind, W, with_gains):
     else:
         omega, iterations, _ = minimize_convex_scalar(derivative, scale=scale)
     slope, _ = derivative(omega)
-    # the certificate (criteria.pair_certificate in Python floats)
     rounding = slope_rounding_single(lam_list, omega, c, sigma)
-    product = 2.0 * _EPS * (abs(slope) + rounding)
-    gap = max(interval_gap(omega, slope - rounding),
-              interval_gap(omega, slope + rounding)) + product
-    computed = interval_gap(omega, slope)
-    floor = rounding + product
-    if c is not None:
-        value = sum([ck * (ak + 1.0) / (1.0 + omega * ak) for ck, ak in zip(c, a)])
-        gap, floor, computed = gap / value, floor / value, computed / value
+    value = (None if c is None else
+             sum([ck * (ak + 1.0) / (1.0 + omega * ak) for ck, ak in zip(c, a)]))
+    gap, floor, computed = pair_certificate(omega, slope, rounding, value)
     if not gap <= GAP_TOL:  # not certified here: the numpy path decides
         return None
     # The bound of the gains K_1 = omega T diag(e) U^T L_1^-1 and K_2 = I - K_1:
